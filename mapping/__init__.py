@@ -1,0 +1,1 @@
+"""Dense mapping: plane-sweep stereo, PatchMatch, TSDF fusion and meshing."""

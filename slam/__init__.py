@@ -1,0 +1,1 @@
+"""The online SLAM system: messages, config, calibration, geometry, stages and estimators."""

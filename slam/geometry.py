@@ -1,0 +1,75 @@
+"""Rigid transforms and rotation conventions.
+
+Transforms are 4x4 homogeneous matrices named ``a_from_b`` (they map points in frame b to frame a
+and chain right to left: ``a_from_c = a_from_b @ b_from_c``). Rotations go through scipy's
+``Rotation``; quaternion order is always in the name (``q_wxyz`` or ``q_xyzw``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def make_transform(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """Build a 4x4 transform from a 3x3 rotation and a 3-vector."""
+    t = np.eye(4)
+    t[:3, :3] = rotation
+    t[:3, 3] = np.asarray(translation, dtype=float).reshape(3)
+    return t
+
+
+def invert_transform(a_from_b: np.ndarray) -> np.ndarray:
+    """Return b_from_a for a rigid 4x4 (or a stack of them, shape (N, 4, 4))."""
+    a_from_b = np.asarray(a_from_b, dtype=float)
+    rot_t = np.swapaxes(a_from_b[..., :3, :3], -1, -2)
+    out = np.zeros_like(a_from_b)
+    out[..., :3, :3] = rot_t
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", rot_t, a_from_b[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def transform_points(a_from_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
+    """Map (N, 3) points from frame b to frame a."""
+    return points_b @ a_from_b[:3, :3].T + a_from_b[:3, 3]
+
+
+def quat_wxyz_to_matrix(q_wxyz: np.ndarray) -> np.ndarray:
+    """(…, 4) w,x,y,z -> (…, 3, 3). scipy wants x,y,z,w, hence the reorder."""
+    q = np.asarray(q_wxyz, dtype=float)
+    return Rotation.from_quat(q[..., [1, 2, 3, 0]]).as_matrix()
+
+
+def matrix_to_quat_wxyz(rotation: np.ndarray) -> np.ndarray:
+    """(…, 3, 3) -> (…, 4) w,x,y,z with w >= 0 (scipy returns x,y,z,w)."""
+    q_xyzw = Rotation.from_matrix(rotation).as_quat()
+    q_wxyz = q_xyzw[..., [3, 0, 1, 2]]
+    sign = np.where(q_wxyz[..., :1] < 0, -1.0, 1.0)
+    return q_wxyz * sign
+
+
+def poses_to_matrices(positions: np.ndarray, q_wxyz: np.ndarray) -> np.ndarray:
+    """(N, 3) positions + (N, 4) q_wxyz -> (N, 4, 4) transforms."""
+    n = len(positions)
+    out = np.zeros((n, 4, 4))
+    out[:, :3, :3] = quat_wxyz_to_matrix(q_wxyz)
+    out[:, :3, 3] = positions
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """The 3x3 cross-product matrix of v."""
+    x, y, z = v
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def so3_exp(omega: np.ndarray) -> np.ndarray:
+    """Rotation matrix for a rotation vector (rad)."""
+    return Rotation.from_rotvec(omega).as_matrix()
+
+
+def so3_log(rotation: np.ndarray) -> np.ndarray:
+    """Rotation vector (rad) of a rotation matrix."""
+    return Rotation.from_matrix(rotation).as_rotvec()

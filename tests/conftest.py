@@ -1,0 +1,29 @@
+"""Shared fixtures: where the shared real data lives (skip with a reason when absent)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+PROJECT_ROOT = Path(__file__).resolve().parents[1]
+
+
+def data_dir() -> Path:
+    return Path(os.environ.get("SLAM_DATA_DIR", PROJECT_ROOT.parent / "shared" / "data"))
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    d = data_dir()
+    if not d.is_dir():
+        pytest.skip(f"shared data not found at {d} (set SLAM_DATA_DIR)")
+    return d
+
+
+def require(path: Path) -> Path:
+    """Skip the calling test when a shared-data file or folder is missing."""
+    if not path.exists():
+        pytest.skip(f"shared data missing: {path}")
+    return path

@@ -1,0 +1,42 @@
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from slam.calibration import Calibration, CameraCalibration, CameraIntrinsics, ImuCalibration
+from slam.geometry import invert_transform, make_transform, matrix_to_quat_wxyz, quat_wxyz_to_matrix
+
+
+def test_invert_transform_roundtrip():
+    rng = np.random.default_rng(0)
+    t = make_transform(Rotation.random(random_state=1).as_matrix(), rng.normal(size=3))
+    np.testing.assert_allclose(invert_transform(t) @ t, np.eye(4), atol=1e-12)
+
+
+def test_quaternion_conventions():
+    r = Rotation.from_euler("xyz", [0.1, -0.4, 2.0]).as_matrix()
+    q_wxyz = matrix_to_quat_wxyz(r)
+    assert q_wxyz[0] >= 0
+    np.testing.assert_allclose(quat_wxyz_to_matrix(q_wxyz), r, atol=1e-12)
+
+
+def test_radtan_projection_inverts_undistortion():
+    intr = CameraIntrinsics(
+        752,
+        480,
+        458.654,
+        457.296,
+        367.215,
+        248.375,
+        "radtan",
+        (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05),
+    )
+    pts = np.array([[0.1, -0.2, 1.0], [-0.3, 0.25, 2.0], [0.0, 0.0, 3.0]])
+    px = intr.project(pts)
+    norm = intr.undistort_points(px)
+    np.testing.assert_allclose(norm, pts[:, :2] / pts[:, 2:], atol=1e-6)
+
+
+def test_calibration_dict_roundtrip():
+    cam = CameraCalibration("cam0", CameraIntrinsics(640, 480, 500, 500, 320, 240))
+    cal = Calibration((cam,), ImuCalibration(), 1234)
+    back = Calibration.from_dict(cal.to_dict())
+    assert back.to_dict() == cal.to_dict()

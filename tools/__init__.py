@@ -1,0 +1,1 @@
+"""The `slam` command line: thin wrappers over typed library functions."""
