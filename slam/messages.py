@@ -31,3 +31,48 @@ class StereoFrame:
 
 
 SensorMessage = ImuSample | StereoFrame
+
+
+@dataclass(frozen=True, eq=False)
+class Keyframe:
+    """A keyframe from the front end, with its landmark observations.
+
+    Pixel coordinates are *undistorted* pixels of the pinhole model with the camera's own K
+    (``CameraIntrinsics.K``, distortion removed), so the back end can use plain Cal3_S2
+    projection factors. ``pixels_right_undist`` rows are NaN where stereo matching failed.
+    ``world_from_body_vo`` is the front end's (VO or IMU-propagated) estimate: an initial guess.
+    """
+
+    t_ns: int
+    keyframe_id: int
+    frame_index: int
+    segment_id: int  # map segment; a new one starts after each unrecovered tracking loss
+    world_from_body_vo: np.ndarray  # (4, 4)
+    landmark_ids: np.ndarray  # (N,) int64, ids unique over the run
+    pixels_left_undist: np.ndarray  # (N, 2) float64
+    pixels_right_undist: np.ndarray  # (N, 2) float64, NaN where no stereo match
+    points_world_vo: np.ndarray  # (N, 3) front-end landmark positions (initial guesses)
+    image_left: np.ndarray  # (H, W) uint8, for the mapper and the loop closer
+    image_right: np.ndarray | None
+
+
+@dataclass(frozen=True, eq=False)
+class Estimate:
+    """An immutable snapshot the back end publishes; the front end reads it without waiting.
+
+    ``world_from_body`` / velocity / biases are for keyframe ``keyframe_id`` at ``t_ns``.
+    ``keyframe_poses`` maps keyframe id -> world_from_body for the keyframes in the window
+    (and any corrected by loop closure). Landmarks are the optimised positions in the window.
+    """
+
+    t_ns: int
+    keyframe_id: int
+    initialized: bool  # False until gravity/biases (VIO) or the first keyframe (VO) are known
+    world_from_body: np.ndarray  # (4, 4)
+    velocity_world_m_s: np.ndarray  # (3,)
+    bias_gyro_rad_s: np.ndarray  # (3,)
+    bias_accel_m_s2: np.ndarray  # (3,)
+    keyframe_poses: dict[int, np.ndarray]
+    landmark_ids: np.ndarray  # (M,) int64
+    landmark_positions_world: np.ndarray  # (M, 3)
+    map_generation: int = 0  # increments when a loop correction moves the whole map
