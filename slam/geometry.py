@@ -8,7 +8,9 @@ and chain right to left: ``a_from_c = a_from_b @ b_from_c``). Rotations go throu
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+# scipy.spatial costs ~0.3 s to import; it is imported inside the functions that need it so that
+# light commands (`slam eval`) start fast.
 
 
 def make_transform(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
@@ -37,12 +39,16 @@ def transform_points(a_from_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
 
 def quat_wxyz_to_matrix(q_wxyz: np.ndarray) -> np.ndarray:
     """(…, 4) w,x,y,z -> (…, 3, 3). scipy wants x,y,z,w, hence the reorder."""
+    from scipy.spatial.transform import Rotation
+
     q = np.asarray(q_wxyz, dtype=float)
     return Rotation.from_quat(q[..., [1, 2, 3, 0]]).as_matrix()
 
 
 def matrix_to_quat_wxyz(rotation: np.ndarray) -> np.ndarray:
     """(…, 3, 3) -> (…, 4) w,x,y,z with w >= 0 (scipy returns x,y,z,w)."""
+    from scipy.spatial.transform import Rotation
+
     q_xyzw = Rotation.from_matrix(rotation).as_quat()
     q_wxyz = q_xyzw[..., [3, 0, 1, 2]]
     sign = np.where(q_wxyz[..., :1] < 0, -1.0, 1.0)
@@ -67,9 +73,13 @@ def skew(v: np.ndarray) -> np.ndarray:
 
 def so3_exp(omega: np.ndarray) -> np.ndarray:
     """Rotation matrix for a rotation vector (rad)."""
+    from scipy.spatial.transform import Rotation
+
     return Rotation.from_rotvec(omega).as_matrix()
 
 
 def so3_log(rotation: np.ndarray) -> np.ndarray:
     """Rotation vector (rad) of a rotation matrix."""
+    from scipy.spatial.transform import Rotation
+
     return Rotation.from_matrix(rotation).as_rotvec()
