@@ -1,0 +1,328 @@
+"""A salvaging, indexing pass over an MCAP file, and random access to its message payloads.
+
+Why not ``mcap.reader.make_reader``: it needs an intact summary (a truncated file fails with
+RecordLengthLimitExceeded) and does not expose where each message lives. This scanner walks the
+records in file order (the format is simple: magic, then ``opcode u8 | length u64 | content``),
+so it
+
+- keeps the readable prefix of a truncated file and reports how many bytes were lost,
+- decompresses each chunk, validates its CRC and skips (with a warning) one that is corrupt,
+- records, per message, its channel, log time, header stamp and location (chunk, offset), and
+  keeps the payload of small messages (IMU, poses) so they need no second read.
+
+Schema, Channel, Header and Metadata records are parsed with the ``mcap`` package's own record
+classes. :class:`ChunkCache` re-reads large payloads (images) on demand.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+import zlib
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from io import BytesIO
+from typing import Any, BinaryIO
+
+import numpy as np
+from mcap.data_stream import ReadDataStream
+from mcap.records import Channel, Header, Metadata, Schema
+
+from slam.errors import InputError
+
+MAGIC = b"\x89MCAP0\r\n"
+OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 1, 2, 3, 4, 5, 6
+OP_METADATA, OP_DATA_END = 0x0C, 0x0F
+SMALL_PAYLOAD_BYTES = 8192  # payloads up to this size are kept in memory by the scan
+HEAD_BYTES = 256  # of larger payloads only this much is kept (header stamp, image header)
+NO_STAMP = np.iinfo(np.int64).min
+
+
+@dataclass(frozen=True)
+class ChunkRef:
+    """Where a chunk's compressed records are in the file."""
+
+    data_offset: int  # file offset of the compressed records
+    data_length: int
+    compression: str
+    uncompressed_size: int
+    start_ns: int  # message log-time span (from the chunk record)
+    end_ns: int
+
+
+@dataclass
+class ScanResult:
+    """What one pass over an MCAP file found. Message columns are in file order."""
+
+    path: str
+    file_size: int
+    profile: str = ""
+    library: str = ""
+    schemas: dict[int, Schema] = field(default_factory=dict)
+    channels: dict[int, Channel] = field(default_factory=dict)
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    chunks: list[ChunkRef] = field(default_factory=list)
+    msg_channel: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    msg_log_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    msg_chunk: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # -1: top level
+    msg_offset: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    msg_length: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    heads: list[bytes] = field(default_factory=list)  # whole payload if small, else its head
+    complete: bool = False  # footer and closing magic seen
+    lost_bytes: int = 0  # bytes at the end that could not be read (truncation)
+    skipped_chunks: int = 0
+    skipped_span_ns: int = 0
+    warnings: list[str] = field(default_factory=list)
+
+    def topics(self) -> dict[str, tuple[str, int]]:
+        """topic -> (schema name, message count), for every channel seen."""
+        counts = np.bincount(self.msg_channel, minlength=max(self.channels, default=0) + 1)
+        out: dict[str, tuple[str, int]] = {}
+        for cid, ch in sorted(self.channels.items()):
+            schema = self.schemas.get(ch.schema_id)
+            name = schema.name if schema else "?"
+            n = int(counts[cid]) if cid < len(counts) else 0
+            prev = out.get(ch.topic)
+            out[ch.topic] = (name, n + (prev[1] if prev else 0))
+        return out
+
+    def describe_topics(self) -> str:
+        """One line listing the topics, their types and counts (for error messages)."""
+        items = [f"{t} [{s}, {n} msgs]" for t, (s, n) in self.topics().items()]
+        return "; ".join(items) if items else "(no topics)"
+
+    def channel_ids(self, topic: str) -> list[int]:
+        return [cid for cid, ch in self.channels.items() if ch.topic == topic]
+
+    def schema_name(self, topic: str) -> str:
+        for ch in self.channels.values():
+            if ch.topic == topic:
+                schema = self.schemas.get(ch.schema_id)
+                return schema.name if schema else ""
+        return ""
+
+
+def _decompress(compression: str, data: bytes, uncompressed_size: int) -> bytes:
+    if compression == "zstd":
+        import zstandard
+
+        return zstandard.ZstdDecompressor().decompress(data, max_output_size=uncompressed_size)
+    if compression == "lz4":
+        import lz4.frame
+
+        return bytes(lz4.frame.decompress(data))
+    if compression == "":
+        return bytes(data)
+    raise InputError(f"MCAP chunk compression {compression!r} is not supported (zstd, lz4, none)")
+
+
+def _read_with(record_cls: Any, content: bytes) -> Any:
+    return record_cls.read(ReadDataStream(BytesIO(content)))
+
+
+def _parse_chunk_header(buf: bytes) -> tuple[int, int, int, int, str, int]:
+    """Chunk record content up to its records: (start, end, usize, crc, compression, offset)."""
+    start, end, usize, crc, clen = struct.unpack_from("<QQQII", buf, 0)
+    pos = 32
+    compression = buf[pos : pos + clen].decode()
+    pos += clen
+    (rlen,) = struct.unpack_from("<Q", buf, pos)
+    pos += 8
+    return start, end, usize, crc, compression, pos
+
+
+class _Collector:
+    def __init__(self) -> None:
+        self.channel: list[int] = []
+        self.log_ns: list[int] = []
+        self.chunk: list[int] = []
+        self.offset: list[int] = []
+        self.length: list[int] = []
+        self.heads: list[bytes] = []
+
+    def add(self, data: bytes, pos: int, length: int, chunk: int, file_base: int) -> None:
+        """A Message record's content at data[pos:pos+length]."""
+        cid, _seq, log_ns, _pub = struct.unpack_from("<HIQQ", data, pos)
+        payload_at = pos + 22
+        n = length - 22
+        self.channel.append(cid)
+        self.log_ns.append(log_ns)
+        self.chunk.append(chunk)
+        self.offset.append(file_base + payload_at)
+        self.length.append(n)
+        keep = n if n <= SMALL_PAYLOAD_BYTES else HEAD_BYTES
+        self.heads.append(bytes(data[payload_at : payload_at + keep]))
+
+
+def _scan_records(
+    data: bytes, result: ScanResult, col: _Collector, chunk_index: int, file_base: int
+) -> None:
+    """Schema/Channel/Message records inside a decompressed chunk."""
+    pos, end = 0, len(data)
+    while pos + 9 <= end:
+        op = data[pos]
+        (length,) = struct.unpack_from("<Q", data, pos + 1)
+        body = pos + 9
+        if body + length > end:
+            raise InputError("chunk record overruns its chunk")
+        if op == OP_MESSAGE:
+            col.add(data, body, length, chunk_index, file_base)
+        elif op == OP_SCHEMA:
+            s = _read_with(Schema, data[body : body + length])
+            result.schemas[s.id] = s
+        elif op == OP_CHANNEL:
+            c = _read_with(Channel, data[body : body + length])
+            result.channels[c.id] = c
+        pos = body + length
+
+
+def scan_mcap(path: str | os.PathLike[str]) -> ScanResult:
+    """Walk the whole file once; never raises on damage after a valid magic (warns instead)."""
+    path = os.fspath(path)
+    size = os.path.getsize(path)
+    result = ScanResult(path=path, file_size=size)
+    col = _Collector()
+    with open(path, "rb") as f:
+        if f.read(8) != MAGIC:
+            raise InputError(f"{path} is not an MCAP file (bad magic bytes)")
+        pos = 8
+        while True:
+            head = f.read(9)
+            if len(head) == 0:
+                break
+            if len(head) < 9:
+                result.lost_bytes = size - pos
+                break
+            op = head[0]
+            (length,) = struct.unpack_from("<Q", head, 1)
+            if pos + 9 + length > size:
+                result.lost_bytes = size - pos
+                break
+            if op == OP_CHUNK:
+                _read_chunk(f, pos + 9, length, result, col)
+            elif op == OP_MESSAGE:
+                content = f.read(length)
+                col.add(content, 0, length, -1, pos + 9)
+            elif op in (OP_SCHEMA, OP_CHANNEL, OP_HEADER, OP_METADATA):
+                content = f.read(length)
+                if op == OP_SCHEMA:
+                    s = _read_with(Schema, content)
+                    result.schemas[s.id] = s
+                elif op == OP_CHANNEL:
+                    c = _read_with(Channel, content)
+                    result.channels[c.id] = c
+                elif op == OP_HEADER:
+                    h = _read_with(Header, content)
+                    result.profile, result.library = h.profile, h.library
+                else:
+                    m = _read_with(Metadata, content)
+                    result.metadata[m.name] = dict(m.metadata)
+            else:
+                f.seek(length, os.SEEK_CUR)
+            pos += 9 + length
+            if op == OP_FOOTER:
+                result.complete = f.read(8) == MAGIC
+                break
+    _finish(result, col)
+    return result
+
+
+def _read_chunk(f: BinaryIO, at: int, length: int, result: ScanResult, col: _Collector) -> None:
+    fixed = f.read(min(length, 4096))
+    start, end, usize, crc, compression, rec_at = _parse_chunk_header(fixed)
+    data_offset = at + rec_at
+    data_length = length - rec_at
+    f.seek(data_offset)
+    compressed = f.read(data_length)
+    ref = ChunkRef(data_offset, data_length, compression, usize, start, end)
+    try:
+        data = _decompress(compression, compressed, usize)
+        if len(data) != usize:
+            raise ValueError(f"chunk decompressed to {len(data)} bytes, expected {usize}")
+        if crc != 0 and zlib.crc32(data) != crc:
+            raise ValueError("CRC mismatch")
+        chunk_col = _Collector()
+        _scan_records(data, result, chunk_col, len(result.chunks), 0)
+    except (InputError, ValueError, struct.error, RuntimeError, Exception) as exc:  # noqa: BLE001
+        if isinstance(exc, InputError) and "not supported" in str(exc):
+            raise
+        result.skipped_chunks += 1
+        result.skipped_span_ns += max(0, end - start)
+        result.warnings.append(
+            f"corrupt chunk at byte {at} skipped ({type(exc).__name__}: {exc}); "
+            f"messages logged {start * 1e-9:.3f}-{end * 1e-9:.3f} s are lost"
+        )
+        return
+    result.chunks.append(ref)
+    for name in ("channel", "log_ns", "chunk", "offset", "length", "heads"):
+        getattr(col, name).extend(getattr(chunk_col, name))
+
+
+def _finish(result: ScanResult, col: _Collector) -> None:
+    result.msg_channel = np.asarray(col.channel, dtype=np.int32)
+    result.msg_log_ns = np.asarray(col.log_ns, dtype=np.int64)
+    result.msg_chunk = np.asarray(col.chunk, dtype=np.int64)
+    result.msg_offset = np.asarray(col.offset, dtype=np.int64)
+    result.msg_length = np.asarray(col.length, dtype=np.int64)
+    result.heads = col.heads
+    if result.lost_bytes:
+        pct = 100.0 * result.lost_bytes / max(result.file_size, 1)
+        last = f"{result.msg_log_ns.max() * 1e-9:.3f} s" if len(result.msg_log_ns) else "none"
+        result.warnings.append(
+            f"file is truncated: the last {result.lost_bytes} bytes ({pct:.1f}% of "
+            f"{result.file_size}) could not be read; kept {len(result.msg_log_ns)} messages "
+            f"(last log time {last})"
+        )
+    elif not result.complete:
+        result.warnings.append("file has no footer (recording was not closed); read all records")
+
+
+class ChunkCache:
+    """Reads message payloads back by location, keeping a few decompressed chunks."""
+
+    def __init__(self, scan: ScanResult, max_chunks: int = 4) -> None:
+        self.scan = scan
+        self.max_chunks = max_chunks
+        self._cache: OrderedDict[int, bytes] = OrderedDict()
+        self._file: BinaryIO | None = None
+
+    def _fh(self) -> BinaryIO:
+        if self._file is None:
+            self._file = open(self.scan.path, "rb")  # noqa: SIM115 - closed in close()
+        return self._file
+
+    def chunk_data(self, index: int) -> bytes:
+        data = self._cache.get(index)
+        if data is not None:
+            self._cache.move_to_end(index)
+            return data
+        ref = self.scan.chunks[index]
+        fh = self._fh()
+        fh.seek(ref.data_offset)
+        data = _decompress(ref.compression, fh.read(ref.data_length), ref.uncompressed_size)
+        self._cache[index] = data
+        while len(self._cache) > self.max_chunks:
+            self._cache.popitem(last=False)
+        return data
+
+    def drop(self, index: int) -> None:
+        self._cache.pop(index, None)
+
+    def payload(self, msg: int) -> memoryview:
+        """The payload of message number ``msg`` (file order), without copying a chunk."""
+        s = self.scan
+        chunk = int(s.msg_chunk[msg])
+        off, n = int(s.msg_offset[msg]), int(s.msg_length[msg])
+        if n <= SMALL_PAYLOAD_BYTES:
+            return memoryview(s.heads[msg])
+        if chunk < 0:
+            fh = self._fh()
+            fh.seek(off)
+            return memoryview(fh.read(n))
+        return memoryview(self.chunk_data(chunk))[off : off + n]
+
+    def close(self) -> None:
+        self._cache.clear()
+        if self._file is not None:
+            self._file.close()
+            self._file = None
