@@ -76,3 +76,35 @@ class Estimate:
     landmark_ids: np.ndarray  # (M,) int64
     landmark_positions_world: np.ndarray  # (M, 3)
     map_generation: int = 0  # increments when a loop correction moves the whole map
+
+
+@dataclass(frozen=True, eq=False)
+class TrackingResult:
+    """What the front end made of one frame: the pose (or the lack of one) and its features.
+
+    ``state`` is one of "init" (a new map segment started here), "tracking", "lost".
+    ``world_from_body`` is None when the frame could not be tracked: the trajectory marks the
+    gap instead of inventing a pose.
+    """
+
+    t_ns: int
+    frame_index: int
+    state: str
+    segment_id: int
+    world_from_body: np.ndarray | None  # (4, 4)
+    is_keyframe: bool
+    keyframe_id: int  # -1 unless is_keyframe
+    num_tracked: int  # features tracked from the previous frame
+    num_inliers: int  # PnP inliers (0 when not tracked)
+    feature_pixels: np.ndarray  # (N, 2) distorted pixels in the left image
+    feature_ages: np.ndarray  # (N,) frames each feature has been tracked
+    latency_ms: float  # front-end processing time of this frame
+    image_left: np.ndarray | None = None  # for the viewer only (None when not logged)
+    reason: str = ""  # why tracking was lost / what happened, for the log
+
+
+@dataclass(frozen=True)
+class EndOfStream:
+    """Sentinel passed down a stage's queue when its input is exhausted."""
+
+    t_ns: int = 0

@@ -1,0 +1,163 @@
+"""Run configuration: one dataclass per component, nested under :class:`SlamConfig`.
+
+Loaded from a named preset or a YAML file (partial files override the preset they name with
+``preset:``, default ``stereo-vo``/``euroc-stereo-imu``); the resolved config is saved with every
+run. Unknown keys are an error, so a typo never silently falls back to a default.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from slam.errors import SlamError
+
+
+@dataclass
+class FrontendConfig:
+    """Visual front end: features, KLT, stereo, PnP and keyframe decisions."""
+
+    max_features: int = 220
+    """Target number of tracked features (grid-bucketed)."""
+    grid_cols: int = 8
+    """Detection grid columns (one bucket gets at most max_features / cells new features)."""
+    grid_rows: int = 6
+    """Detection grid rows."""
+    min_feature_distance_px: int = 12
+    """Minimum distance between features, pixels."""
+    corner_quality: float = 0.01
+    """goodFeaturesToTrack quality level."""
+    klt_window_px: int = 21
+    """KLT window side, pixels."""
+    klt_pyramid_levels: int = 3
+    """KLT pyramid levels above the base image."""
+    klt_fb_max_error_px: float = 0.7
+    """Forward-backward check: max distance between a point and its back-tracked position."""
+    stereo_max_epipolar_px: float = 1.5
+    """Max distance from the epipolar line for a left-right match, pixels."""
+    min_depth_m: float = 0.2
+    """Closest accepted stereo depth, metres."""
+    max_depth_m: float = 25.0
+    """Farthest accepted stereo depth, metres."""
+    pnp_reprojection_px: float = 2.0
+    """RANSAC inlier threshold for PnP, pixels."""
+    min_pnp_inliers: int = 15
+    """Fewer inliers than this is a tracking loss."""
+    keyframe_min_tracked_ratio: float = 0.7
+    """New keyframe when fewer than this fraction of the last keyframe's landmarks are tracked."""
+    keyframe_max_interval_s: float = 0.5
+    """New keyframe at least this often, seconds."""
+    keyframe_min_parallax_px: float = 25.0
+    """New keyframe when the median feature displacement since the last one exceeds this."""
+    black_frame_max_mean: float = 8.0
+    """A frame darker than this mean intensity is black (tracking cannot work)."""
+    textureless_max_std: float = 3.0
+    """A frame with less intensity spread than this is textureless."""
+    use_gyro_prediction: bool = True
+    """Predict feature positions by integrating the gyro between frames."""
+
+
+@dataclass
+class PlayerConfig:
+    """How the sequence is played into the pipeline."""
+
+    speed: float = 1.0
+    """Playback speed relative to sensor time; 0 means as fast as the pipeline takes it."""
+    sequential: bool = False
+    """Run every stage in one thread in time order (deterministic)."""
+    frame_queue_size: int = 2
+    """Frames waiting for the front end; when full in real-time playback, frames are dropped."""
+    max_frames: int = 0
+    """Stop after this many frames (0 = all)."""
+
+
+@dataclass
+class VizConfig:
+    """rerun visualisation."""
+
+    log_images: bool = True
+    """Log the camera image (JPEG-compressed) with the frustum."""
+    jpeg_quality: int = 75
+    """JPEG quality for logged images."""
+    image_every_n_frames: int = 1
+    """Log every n-th image only (the rest of the frame is always logged)."""
+
+
+@dataclass
+class SlamConfig:
+    """The whole system's configuration."""
+
+    preset: str = "stereo-vo"
+    """Name of the preset this config started from."""
+    use_imu: bool = False
+    """Use the IMU (gyro prediction in the front end, the visual-inertial back end)."""
+    frontend: FrontendConfig = field(default_factory=FrontendConfig)
+    player: PlayerConfig = field(default_factory=PlayerConfig)
+    viz: VizConfig = field(default_factory=VizConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "stereo-vo": {"use_imu": False},
+}
+
+
+def _apply(obj: Any, overrides: dict[str, Any], where: str) -> None:
+    names = {f.name: f for f in dataclasses.fields(obj)}
+    for key, value in overrides.items():
+        if key not in names:
+            raise SlamError(
+                f"unknown config key {where}{key!r}; valid keys: {', '.join(sorted(names))}"
+            )
+        current = getattr(obj, key)
+        if dataclasses.is_dataclass(current) and not isinstance(current, type):
+            if not isinstance(value, dict):
+                raise SlamError(f"config key {where}{key} must be a mapping")
+            _apply(current, value, f"{where}{key}.")
+        else:
+            if isinstance(current, bool) and not isinstance(value, bool):
+                raise SlamError(f"config key {where}{key} must be true or false, got {value!r}")
+            if isinstance(current, float) and isinstance(value, int):
+                value = float(value)
+            setattr(obj, key, value)
+
+
+def preset_config(name: str) -> SlamConfig:
+    """The named preset."""
+    if name not in PRESETS:
+        raise SlamError(f"unknown preset {name!r}; presets: {', '.join(sorted(PRESETS))}")
+    cfg = SlamConfig(preset=name)
+    _apply(cfg, PRESETS[name], "")
+    return cfg
+
+
+def load_config(spec: str | None, default_preset: str = "stereo-vo") -> SlamConfig:
+    """A preset name, or a YAML file (optionally naming a ``preset:`` to start from)."""
+    if spec is None:
+        return preset_config(default_preset)
+    if spec in PRESETS:
+        return preset_config(spec)
+    path = Path(spec)
+    if not path.is_file():
+        raise SlamError(
+            f"config {spec!r} is neither a preset ({', '.join(sorted(PRESETS))}) nor a YAML file"
+        )
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise SlamError(f"{path}: not valid YAML: {exc}") from exc
+    if not isinstance(data, dict):
+        raise SlamError(f"{path}: expected a mapping of config keys")
+    cfg = preset_config(str(data.pop("preset", default_preset)))
+    _apply(cfg, data, "")
+    return cfg
+
+
+def config_to_yaml(cfg: SlamConfig) -> str:
+    return yaml.safe_dump(cfg.to_dict(), sort_keys=False)

@@ -1,0 +1,1 @@
+"""The visual front end: features, KLT tracking, stereo matching, PnP and keyframe decisions."""

@@ -1,0 +1,78 @@
+"""Left-right stereo matching on unrectified images: KLT along the epipolar line, then checks.
+
+EuRoC-like rigs are not rectified, so matching works in the original images: each left feature
+is KLT-tracked into the right image from a guess at a nominal depth, then kept only if it lies
+within ``stereo_max_epipolar_px`` of its epipolar line, back-tracks to itself, and triangulates
+in front of both cameras within the configured depth range.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from slam.calibration import Calibration
+from slam.config import FrontendConfig
+from slam.frontend.features import track_klt
+from slam.geometry import skew, transform_points
+
+
+@dataclass(frozen=True, eq=False)
+class StereoMatches:
+    """Stereo results for N left features (rows with ``ok`` False are invalid)."""
+
+    ok: np.ndarray  # (N,) bool
+    pixels_right: np.ndarray  # (N, 2) distorted right pixels
+    points_cam0_m: np.ndarray  # (N, 3) triangulated points in the left camera frame
+
+
+class StereoMatcher:
+    """Matches left features into the right image and triangulates them."""
+
+    def __init__(self, calib: Calibration, cfg: FrontendConfig, nominal_depth_m: float = 4.0):
+        self.cfg = cfg
+        self.cam0 = calib.cameras[0].intrinsics
+        self.cam1 = calib.cameras[1].intrinsics
+        c1_from_c0 = calib.cam1_from_cam0()
+        self.r_10 = c1_from_c0[:3, :3]
+        self.t_10 = c1_from_c0[:3, 3]
+        self.cam1_from_cam0 = c1_from_c0
+        self.essential = skew(self.t_10) @ self.r_10
+        self.nominal_depth_m = nominal_depth_m
+        self.proj0 = np.hstack([np.eye(3), np.zeros((3, 1))])
+        self.proj1 = np.hstack([self.r_10, self.t_10[:, None]])
+
+    def match(
+        self, pyr_left: np.ndarray, pyr_right: np.ndarray, pixels_left: np.ndarray
+    ) -> StereoMatches:
+        n = len(pixels_left)
+        if n == 0:
+            return StereoMatches(np.zeros(0, bool), np.zeros((0, 2)), np.zeros((0, 3)))
+        norm0 = self.cam0.undistort_points(pixels_left)
+        rays0 = np.hstack([norm0, np.ones((n, 1))])
+        guess = self.cam1.project(
+            transform_points(self.cam1_from_cam0, rays0 * self.nominal_depth_m)
+        )
+        px_right, ok = track_klt(pyr_left, pyr_right, pixels_left, self.cfg, guess_to=guess)
+        norm1 = self.cam1.undistort_points(px_right)
+        rays1 = np.hstack([norm1, np.ones((n, 1))])
+        # Epipolar distance of the right ray from the line E x0, in right-image pixels.
+        lines = rays0 @ self.essential.T
+        dist_norm = np.abs(np.sum(lines * rays1, axis=1)) / np.maximum(
+            np.linalg.norm(lines[:, :2], axis=1), 1e-12
+        )
+        ok &= dist_norm * self.cam1.fx < self.cfg.stereo_max_epipolar_px
+        pts4 = cv2.triangulatePoints(self.proj0, self.proj1, norm0.T, norm1.T)
+        w = pts4[3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            pts = (pts4[:3] / w).T
+        ok &= np.isfinite(pts).all(axis=1)
+        pts = np.where(np.isfinite(pts), pts, 0.0)
+        z0 = pts[:, 2]
+        z1 = transform_points(self.cam1_from_cam0, pts)[:, 2]
+        ok &= (
+            (z0 > self.cfg.min_depth_m) & (z0 < self.cfg.max_depth_m) & (z1 > self.cfg.min_depth_m)
+        )
+        return StereoMatches(ok=ok, pixels_right=px_right.astype(np.float64), points_cam0_m=pts)

@@ -1,0 +1,395 @@
+"""The front end: every frame, track features, estimate the pose, decide keyframes.
+
+Per frame: black/textureless check -> gyro-predicted KLT (forward-backward checked) -> PnP
+RANSAC against the local map's landmarks (+ LM refinement) -> keyframe decision -> at keyframes,
+new grid-bucketed features and stereo triangulation of new landmarks.
+
+The front end never waits for the back end: it reads the latest published :class:`Estimate`
+through a callable and re-anchors its local map to it (the correction between the back end's
+and its own pose of the same keyframe is applied to the current pose and unrefined landmarks).
+
+Tracking loss (too few PnP inliers, a black or textureless frame) leaves a gap in the trajectory;
+the next usable frame starts a new map segment from stereo, at the last known pose.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from slam.calibration import Calibration
+from slam.config import FrontendConfig
+from slam.frontend.features import build_pyramid, detect_features, track_klt
+from slam.frontend.stereo import StereoMatcher
+from slam.geometry import invert_transform, make_transform
+from slam.imu_buffer import ImuBuffer, integrate_gyro
+from slam.messages import Estimate, Keyframe, StereoFrame, TrackingResult
+
+MAX_STORED_KEYFRAME_POSES = 200
+
+
+@dataclass
+class FrontendStats:
+    frames: int = 0
+    tracked: int = 0
+    lost_frames: int = 0
+    tracking_losses: int = 0
+    segments: int = 0
+    keyframes: int = 0
+    estimate_corrections: int = 0
+    state_log: list[tuple[int, str]] = field(default_factory=list)
+
+
+class FrontEnd:
+    """Stereo visual tracking with an optional gyro prior and back-end feedback."""
+
+    def __init__(
+        self,
+        calib: Calibration,
+        cfg: FrontendConfig,
+        imu: ImuBuffer | None = None,
+        estimate_source: Callable[[], Estimate | None] | None = None,
+    ):
+        if not calib.is_stereo:
+            raise ValueError("the front end needs a stereo calibration (cam0 and cam1)")
+        self.calib = calib
+        self.cfg = cfg
+        self.imu = imu
+        self.estimate_source = estimate_source or (lambda: None)
+        self.cam0 = calib.cameras[0].intrinsics
+        self.K = self.cam0.K
+        self.body_from_cam0 = calib.cameras[0].body_from_cam
+        self.cam0_from_body = invert_transform(self.body_from_cam0)
+        self.stereo = StereoMatcher(calib, cfg)
+        self.stats = FrontendStats()
+        # tracks
+        self.px = np.zeros((0, 2), np.float32)
+        self.ids = np.zeros(0, np.int64)
+        self.ages = np.zeros(0, np.int64)
+        self.landmarks: dict[int, np.ndarray] = {}
+        self.pyr_prev: np.ndarray | None = None
+        self.t_prev_ns = 0
+        # pose state
+        self.world_from_body: np.ndarray | None = None  # last tracked pose
+        self.prev_world_from_body: np.ndarray | None = None
+        self.prev_dt_ns = 0
+        self.last_known_pose = np.eye(4)
+        self.segment_id = -1
+        self.mapped = False
+        # keyframes
+        self.next_landmark_id = 0
+        self.next_keyframe_id = 0
+        self.kf_t_ns = 0
+        self.kf_px: dict[int, np.ndarray] = {}
+        self.kf_num_landmarks = 0
+        self.kf_poses: dict[int, np.ndarray] = {}
+        self.applied_estimate: tuple[int, int] = (-1, -1)
+        self.bias_gyro = np.zeros(3)
+
+    # ------------------------------------------------------------------ feedback
+    def _apply_estimate(self) -> None:
+        est = self.estimate_source()
+        if est is None or not est.initialized:
+            return
+        key = (est.keyframe_id, est.map_generation)
+        if key == self.applied_estimate:
+            return
+        self.applied_estimate = key
+        self.bias_gyro = np.asarray(est.bias_gyro_rad_s, dtype=float)
+        fe_pose = self.kf_poses.get(est.keyframe_id)
+        if fe_pose is None or not self.mapped:
+            return
+        correction = est.world_from_body @ invert_transform(fe_pose)
+        self.stats.estimate_corrections += 1
+        rot, trans = correction[:3, :3], correction[:3, 3]
+        for lid in self.landmarks:
+            self.landmarks[lid] = rot @ self.landmarks[lid] + trans
+        for lid, pos in zip(est.landmark_ids.tolist(), est.landmark_positions_world, strict=False):
+            if lid in self.landmarks:
+                self.landmarks[lid] = np.asarray(pos, dtype=float)
+        for kid in self.kf_poses:
+            self.kf_poses[kid] = correction @ self.kf_poses[kid]
+        if self.world_from_body is not None:
+            self.world_from_body = correction @ self.world_from_body
+        if self.prev_world_from_body is not None:
+            self.prev_world_from_body = correction @ self.prev_world_from_body
+        self.last_known_pose = correction @ self.last_known_pose
+
+    # ------------------------------------------------------------------ helpers
+    def _undistorted_px(self, px: np.ndarray) -> np.ndarray:
+        norm = self.cam0.undistort_points(px)
+        return norm * [self.cam0.fx, self.cam0.fy] + [self.cam0.cx, self.cam0.cy]
+
+    def _gyro_rotation(self, t0_ns: int, t1_ns: int) -> np.ndarray | None:
+        """body(t0)_from_body(t1) from the gyro, or None without usable IMU."""
+        if self.imu is None or not self.cfg.use_gyro_prediction:
+            return None
+        return integrate_gyro(self.imu.window(t0_ns, t1_ns), t0_ns, t1_ns, self.bias_gyro)
+
+    def _result(self, frame: StereoFrame, state: str, t_start: float, **kw) -> TrackingResult:
+        pose = kw.pop("world_from_body", None)
+        return TrackingResult(
+            t_ns=frame.t_ns,
+            frame_index=frame.index,
+            state=state,
+            segment_id=self.segment_id,
+            world_from_body=None if pose is None else pose.copy(),
+            is_keyframe=kw.pop("is_keyframe", False),
+            keyframe_id=kw.pop("keyframe_id", -1),
+            num_tracked=kw.pop("num_tracked", 0),
+            num_inliers=kw.pop("num_inliers", 0),
+            feature_pixels=self.px.copy(),
+            feature_ages=self.ages.copy(),
+            latency_ms=(time.perf_counter() - t_start) * 1e3,
+            image_left=frame.left,
+            reason=kw.pop("reason", ""),
+        )
+
+    def _lose(self, frame: StereoFrame, t_start: float, reason: str) -> TrackingResult:
+        if self.mapped:
+            self.stats.tracking_losses += 1
+            self.stats.state_log.append((frame.t_ns, f"lost: {reason}"))
+        self.mapped = False
+        self.stats.lost_frames += 1
+        self.px = np.zeros((0, 2), np.float32)
+        self.ids = np.zeros(0, np.int64)
+        self.ages = np.zeros(0, np.int64)
+        self.landmarks.clear()
+        self.world_from_body = None
+        self.prev_world_from_body = None
+        return self._result(frame, "lost", t_start, reason=reason)
+
+    # ------------------------------------------------------------------ main entry
+    def process(self, frame: StereoFrame) -> tuple[TrackingResult, Keyframe | None]:
+        """Track one frame. Returns the tracking result and a keyframe when one was made."""
+        t_start = time.perf_counter()
+        self.stats.frames += 1
+        self._apply_estimate()
+        image = frame.left
+        mean, std = float(image.mean()), float(image.std())
+        if mean < self.cfg.black_frame_max_mean or std < self.cfg.textureless_max_std:
+            self.pyr_prev = None
+            what = "black frame" if mean < self.cfg.black_frame_max_mean else "textureless frame"
+            return self._lose(frame, t_start, what), None
+        pyr = build_pyramid(image, self.cfg)
+        if not self.mapped or self.pyr_prev is None:
+            result, kf = self._start_segment(frame, pyr, t_start)
+        else:
+            result, kf = self._track(frame, pyr, t_start)
+        self.pyr_prev = pyr
+        self.t_prev_ns = frame.t_ns
+        return result, kf
+
+    def _predict_pose(self, t_ns: int, rot_b0_b1: np.ndarray | None) -> np.ndarray:
+        assert self.world_from_body is not None
+        pose = self.world_from_body.copy()
+        if self.prev_world_from_body is not None and self.prev_dt_ns > 0:
+            # constant velocity over the frame interval
+            delta = invert_transform(self.prev_world_from_body) @ self.world_from_body
+            ratio = (t_ns - self.t_prev_ns) / self.prev_dt_ns
+            if 0.0 < ratio < 5.0:
+                from scipy.spatial.transform import Rotation
+
+                rotvec = Rotation.from_matrix(delta[:3, :3]).as_rotvec() * ratio
+                delta = make_transform(
+                    Rotation.from_rotvec(rotvec).as_matrix(), delta[:3, 3] * ratio
+                )
+                pose = self.world_from_body @ delta
+        if rot_b0_b1 is not None:
+            pose[:3, :3] = self.world_from_body[:3, :3] @ rot_b0_b1
+        return pose
+
+    def _track(
+        self, frame: StereoFrame, pyr: np.ndarray, t_start: float
+    ) -> tuple[TrackingResult, Keyframe | None]:
+        assert self.pyr_prev is not None and self.world_from_body is not None
+        rot_b0_b1 = self._gyro_rotation(self.t_prev_ns, frame.t_ns)
+        guess = None
+        if rot_b0_b1 is not None and len(self.px):
+            rot_c1_c0 = (self.cam0_from_body[:3, :3] @ rot_b0_b1 @ self.body_from_cam0[:3, :3]).T
+            rays = np.hstack([self.cam0.undistort_points(self.px), np.ones((len(self.px), 1))])
+            rays1 = rays @ rot_c1_c0.T
+            if (rays1[:, 2] > 0.1).all():
+                guess = self.cam0.project(rays1)
+        px, ok = track_klt(self.pyr_prev, pyr, self.px, self.cfg, guess_to=guess)
+        num_tracked = int(ok.sum())
+        self.px, self.ids, self.ages = px[ok], self.ids[ok], self.ages[ok] + 1
+        pose_guess = self._predict_pose(frame.t_ns, rot_b0_b1)
+        has_lm = np.array([i in self.landmarks for i in self.ids.tolist()], dtype=bool)
+        if has_lm.sum() < self.cfg.min_pnp_inliers:
+            return self._lose(frame, t_start, f"only {int(has_lm.sum())} landmarks tracked"), None
+        idx = np.flatnonzero(has_lm)
+        obj = np.array([self.landmarks[i] for i in self.ids[idx].tolist()])
+        img = self._undistorted_px(self.px[idx])
+        cam_from_world = self.cam0_from_body @ invert_transform(pose_guess)
+        rvec, _ = cv2.Rodrigues(cam_from_world[:3, :3])
+        tvec = cam_from_world[:3, 3].reshape(3, 1).copy()
+        ok_pnp, rvec, tvec, inliers = cv2.solvePnPRansac(
+            obj,
+            img,
+            self.K,
+            None,
+            rvec,
+            tvec,
+            useExtrinsicGuess=True,
+            iterationsCount=100,
+            reprojectionError=self.cfg.pnp_reprojection_px,
+            confidence=0.999,
+            flags=cv2.SOLVEPNP_ITERATIVE,
+        )
+        n_in = 0 if inliers is None else len(inliers)
+        if not ok_pnp or n_in < self.cfg.min_pnp_inliers:
+            return self._lose(frame, t_start, f"PnP found {n_in} inliers"), None
+        inl = inliers.ravel()
+        rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], self.K, None, rvec, tvec)
+        rot, _ = cv2.Rodrigues(rvec)
+        cam_from_world = make_transform(rot, tvec.ravel())
+        pose = invert_transform(cam_from_world) @ self.cam0_from_body
+        # drop PnP outliers from the tracks
+        keep = np.ones(len(self.ids), dtype=bool)
+        outliers = np.setdiff1d(np.arange(len(idx)), inl)
+        keep[idx[outliers]] = False
+        self.px, self.ids, self.ages = self.px[keep], self.ids[keep], self.ages[keep]
+        self.prev_world_from_body = self.world_from_body
+        self.prev_dt_ns = frame.t_ns - self.t_prev_ns
+        self.world_from_body = pose
+        self.last_known_pose = pose
+        self.stats.tracked += 1
+        # forget landmarks that are no longer tracked (the back end keeps its own)
+        tracked = set(self.ids.tolist())
+        for lid in [lid for lid in self.landmarks if lid not in tracked]:
+            del self.landmarks[lid]
+        kf = None
+        if self._need_keyframe(frame.t_ns, n_in):
+            kf = self._make_keyframe(frame, pyr)
+        return (
+            self._result(
+                frame,
+                "tracking",
+                t_start,
+                world_from_body=pose,
+                is_keyframe=kf is not None,
+                keyframe_id=kf.keyframe_id if kf else -1,
+                num_tracked=num_tracked,
+                num_inliers=n_in,
+            ),
+            kf,
+        )
+
+    def _need_keyframe(self, t_ns: int, num_inliers: int) -> bool:
+        cfg = self.cfg
+        if (t_ns - self.kf_t_ns) * 1e-9 >= cfg.keyframe_max_interval_s:
+            return True
+        still = [self.kf_px[i] for i in self.ids.tolist() if i in self.kf_px]
+        if len(still) < cfg.keyframe_min_tracked_ratio * max(self.kf_num_landmarks, 1):
+            return True
+        if num_inliers < 3 * cfg.min_pnp_inliers:
+            return True
+        if still:
+            now = self.px[[i in self.kf_px for i in self.ids.tolist()]]
+            parallax = float(np.median(np.linalg.norm(now - np.array(still), axis=1)))
+            if parallax > cfg.keyframe_min_parallax_px:
+                return True
+        return False
+
+    def _start_segment(
+        self, frame: StereoFrame, pyr: np.ndarray, t_start: float
+    ) -> tuple[TrackingResult, Keyframe | None]:
+        if frame.right is None:
+            return self._lose(frame, t_start, "no right image to start from stereo"), None
+        self.px = np.zeros((0, 2), np.float32)
+        self.ids = np.zeros(0, np.int64)
+        self.ages = np.zeros(0, np.int64)
+        self.landmarks.clear()
+        pose = self.last_known_pose.copy()
+        if self.t_prev_ns and self.stats.segments:
+            rot = self._gyro_rotation(self.t_prev_ns, frame.t_ns)
+            if rot is not None:
+                pose[:3, :3] = pose[:3, :3] @ rot
+        self.world_from_body = pose
+        self.prev_world_from_body = None
+        kf = self._make_keyframe(frame, pyr, new_segment=True)
+        if kf is None:
+            self.world_from_body = None
+            return self._lose(frame, t_start, "too few stereo matches to start a map"), None
+        self.stats.tracked += 1
+        return (
+            self._result(
+                frame,
+                "init",
+                t_start,
+                world_from_body=pose,
+                is_keyframe=True,
+                keyframe_id=kf.keyframe_id,
+                num_inliers=len(kf.landmark_ids),
+            ),
+            kf,
+        )
+
+    def _make_keyframe(
+        self, frame: StereoFrame, pyr: np.ndarray, new_segment: bool = False
+    ) -> Keyframe | None:
+        assert self.world_from_body is not None
+        new_px = detect_features(frame.left, self.px, self.cfg)
+        px = np.vstack([self.px, new_px]).astype(np.float32)
+        ids = np.concatenate([self.ids, np.full(len(new_px), -1, np.int64)])
+        ages = np.concatenate([self.ages, np.zeros(len(new_px), np.int64)])
+        right_px = np.full((len(px), 2), np.nan)
+        if frame.right is not None and len(px):
+            pyr_right = build_pyramid(frame.right, self.cfg)
+            matches = self.stereo.match(pyr, pyr_right, px)
+            right_px[matches.ok] = matches.pixels_right[matches.ok]
+            world_from_cam = self.world_from_body @ self.body_from_cam0
+            need = matches.ok & (ids < 0)
+            pts_world = (
+                matches.points_cam0_m[need] @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
+            )
+            new_ids = np.arange(self.next_landmark_id, self.next_landmark_id + int(need.sum()))
+            self.next_landmark_id += len(new_ids)
+            ids[need] = new_ids
+            for lid, p in zip(new_ids.tolist(), pts_world, strict=True):
+                self.landmarks[lid] = p
+        has_lm = ids >= 0
+        if new_segment and has_lm.sum() < max(2 * self.cfg.min_pnp_inliers, 30):
+            return None
+        # features that never got a landmark are dropped at the next keyframe if still without
+        self.px, self.ids, self.ages = px, ids, ages
+        if new_segment:
+            self.segment_id += 1
+            self.stats.segments += 1
+            self.mapped = True
+            self.stats.state_log.append((frame.t_ns, f"map segment {self.segment_id} started"))
+        kf_id = self.next_keyframe_id
+        self.next_keyframe_id += 1
+        self.stats.keyframes += 1
+        self.kf_t_ns = frame.t_ns
+        self.kf_px = {int(i): p for i, p in zip(ids[has_lm], px[has_lm], strict=True)}
+        self.kf_num_landmarks = int(has_lm.sum())
+        self.kf_poses[kf_id] = self.world_from_body.copy()
+        if len(self.kf_poses) > MAX_STORED_KEYFRAME_POSES:
+            del self.kf_poses[min(self.kf_poses)]
+        lm_ids = ids[has_lm]
+        und_left = self._undistorted_px(px[has_lm]) if has_lm.any() else np.zeros((0, 2))
+        r = right_px[has_lm]
+        und_right = np.full_like(r, np.nan)
+        okr = np.isfinite(r).all(axis=1)
+        if okr.any():
+            cam1 = self.calib.cameras[1].intrinsics
+            und_right[okr] = cam1.undistort_points(r[okr]) * [cam1.fx, cam1.fy] + [cam1.cx, cam1.cy]
+        return Keyframe(
+            t_ns=frame.t_ns,
+            keyframe_id=kf_id,
+            frame_index=frame.index,
+            segment_id=self.segment_id,
+            world_from_body_vo=self.world_from_body.copy(),
+            landmark_ids=lm_ids.copy(),
+            pixels_left_undist=und_left,
+            pixels_right_undist=und_right,
+            points_world_vo=np.array([self.landmarks[i] for i in lm_ids.tolist()]).reshape(-1, 3),
+            image_left=frame.left,
+            image_right=frame.right,
+        )

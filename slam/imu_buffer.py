@@ -1,0 +1,67 @@
+"""A thread-safe, time-bounded buffer of IMU samples and gyro integration between two times."""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+
+import numpy as np
+
+from slam.geometry import so3_exp
+from slam.messages import ImuSample
+
+
+class ImuBuffer:
+    """Append-only (in time order) IMU store that forgets samples older than ``keep_ns``.
+
+    The player appends; the front end reads windows. Reads copy out arrays under the lock, so
+    no caller ever sees a half-written sample.
+    """
+
+    def __init__(self, keep_ns: int = 5_000_000_000):
+        self._lock = threading.Lock()
+        self._samples: deque[ImuSample] = deque()
+        self._keep_ns = keep_ns
+
+    def append(self, sample: ImuSample) -> None:
+        if not (np.isfinite(sample.gyro_rad_s).all() and np.isfinite(sample.accel_m_s2).all()):
+            return  # the back end counts and reports bad samples; the front end just skips them
+        with self._lock:
+            if self._samples and sample.t_ns <= self._samples[-1].t_ns:
+                return
+            self._samples.append(sample)
+            while self._samples and sample.t_ns - self._samples[0].t_ns > self._keep_ns:
+                self._samples.popleft()
+
+    def window(self, t0_ns: int, t1_ns: int) -> list[ImuSample]:
+        """Samples with t0 - one sample <= t <= t1 + one sample (enough to cover [t0, t1])."""
+        with self._lock:
+            samples = list(self._samples)
+        if not samples:
+            return []
+        times = np.fromiter((s.t_ns for s in samples), dtype=np.int64, count=len(samples))
+        i0 = max(int(np.searchsorted(times, t0_ns, side="right")) - 1, 0)
+        i1 = min(int(np.searchsorted(times, t1_ns, side="left")) + 1, len(samples))
+        return samples[i0:i1]
+
+
+def integrate_gyro(
+    samples: list[ImuSample], t0_ns: int, t1_ns: int, bias_gyro_rad_s: np.ndarray | None = None
+) -> np.ndarray | None:
+    """Rotation body(t0)_from_body(t1) from gyro samples (piecewise constant), or None if the
+    samples do not cover [t0, t1]."""
+    if t1_ns <= t0_ns:
+        return np.eye(3)
+    if not samples or samples[0].t_ns > t0_ns + 10_000_000 or samples[-1].t_ns < t1_ns - 10_000_000:
+        return None
+    bias = np.zeros(3) if bias_gyro_rad_s is None else bias_gyro_rad_s
+    rot = np.eye(3)
+    for k, s in enumerate(samples):
+        start = max(s.t_ns, t0_ns)
+        end = samples[k + 1].t_ns if k + 1 < len(samples) else t1_ns
+        end = min(end, t1_ns)
+        if end <= start:
+            continue
+        dt = (end - start) * 1e-9
+        rot = rot @ so3_exp((s.gyro_rad_s - bias) * dt)
+    return rot

@@ -1,0 +1,281 @@
+"""Wiring: which stage feeds which, every feedback path, and the player that drives them.
+
+```
+Sequence --Player--> ImuSample -> ImuBuffer (front end gyro prior) [+ back end queue]
+                  -> StereoFrame -> FrontendStage --TrackingResult--> Recorder, RerunStage
+                                                  --Keyframe--> [back end] -> Estimate (Latest)
+Estimate (Latest) ----------------------------------> FrontEnd (read without waiting)
+```
+
+``run_slam`` plays a sequence at sensor rate (``speed`` 1), faster, or as fast as the pipeline
+takes it (``speed`` 0), in concurrent (threads, frames dropped when the front end falls behind in
+real-time playback) or sequential mode (one thread, deterministic). Outputs are flushed
+atomically every few seconds and at the end, also after Ctrl-C or a stage failure.
+"""
+
+from __future__ import annotations
+
+import logging
+import resource
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from datasets.sequence import Sequence
+from slam.config import SlamConfig, config_to_yaml
+from slam.frontend.tracker import FrontEnd
+from slam.imu_buffer import ImuBuffer
+from slam.messages import ImuSample, Keyframe, StereoFrame, TrackingResult
+from slam.output import trajectory_from_poses, write_run_outputs
+from slam.stage import Latest, Stage, StageError
+from slam.trajectory import Trajectory
+
+log = logging.getLogger(__name__)
+
+FLUSH_EVERY_S = 5.0
+
+
+class Recorder:
+    """Collects per-frame results for the outputs (thread-safe)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.poses: list[tuple[int, np.ndarray]] = []
+        self.keyframes: list[tuple[int, np.ndarray]] = []
+        self.frontend_latency_ms: list[float] = []
+        self.states: dict[str, int] = {}
+        self.last_state = ""
+
+    def add(self, res: TrackingResult) -> None:
+        with self._lock:
+            self.frontend_latency_ms.append(res.latency_ms)
+            self.states[res.state] = self.states.get(res.state, 0) + 1
+            self.last_state = res.state
+            if res.world_from_body is not None:
+                self.poses.append((res.t_ns, res.world_from_body))
+                if res.is_keyframe:
+                    self.keyframes.append((res.t_ns, res.world_from_body))
+
+    def snapshot(self) -> tuple[Trajectory, Trajectory, list[float]]:
+        with self._lock:
+            poses, kfs, lat = list(self.poses), list(self.keyframes), list(self.frontend_latency_ms)
+        return trajectory_from_poses(poses), trajectory_from_poses(kfs), lat
+
+
+class FrontendStage(Stage):
+    """Runs the front end on each frame and fans its outputs out."""
+
+    def __init__(
+        self,
+        frontend: FrontEnd,
+        recorder: Recorder,
+        keyframe_consumers: list[Stage],
+        viewer: Stage | None,
+        threaded: bool,
+        queue_size: int,
+    ):
+        super().__init__("frontend", maxsize=queue_size, threaded=threaded)
+        self.frontend = frontend
+        self.recorder = recorder
+        self.keyframe_consumers = keyframe_consumers
+        self.viewer = viewer
+
+    def process(self, msg: Any) -> None:
+        assert isinstance(msg, StereoFrame)
+        result, keyframe = self.frontend.process(msg)
+        self.recorder.add(result)
+        if keyframe is not None:
+            for consumer in self.keyframe_consumers:
+                consumer.put(keyframe)
+        if self.viewer is not None:
+            self.viewer.put(result, block=False)  # the viewer may drop; the front end never waits
+            if keyframe is not None:
+                self.viewer.put(keyframe, block=False)
+
+
+@dataclass
+class RunResult:
+    """What a run produced."""
+
+    out_dir: Path | None
+    trajectory: Trajectory
+    keyframes: Trajectory
+    stats: dict[str, Any]
+    interrupted: bool = False
+    error: StageError | None = None
+    warnings: list[str] = field(default_factory=list)
+
+
+def _percentiles(values: list[float]) -> dict[str, float]:
+    if not values:
+        return {"count": 0}
+    a = np.asarray(values)
+    return {
+        "count": len(a),
+        "p50_ms": float(np.percentile(a, 50)),
+        "p90_ms": float(np.percentile(a, 90)),
+        "p99_ms": float(np.percentile(a, 99)),
+        "max_ms": float(a.max()),
+    }
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux reports KiB
+
+
+def run_slam(
+    seq: Sequence,
+    cfg: SlamConfig,
+    out_dir: Path | None = None,
+    rerun_mode: str = "none",
+    progress: bool = True,
+) -> RunResult:
+    """Play ``seq`` through the pipeline and write the run's outputs to ``out_dir``."""
+    from slam.viz import RerunStage, open_recording
+
+    sequential = cfg.player.sequential
+    threaded = not sequential
+    imu_buffer = ImuBuffer() if cfg.use_imu and seq.num_imu else None
+    latest_estimate = Latest()
+    recorder = Recorder()
+    rec = open_recording(rerun_mode)
+    viewer = (
+        RerunStage(rec, seq.calibration, cfg.viz, seq.ground_truth, threaded=threaded)
+        if rec is not None
+        else None
+    )
+    frontend = FrontEnd(seq.calibration, cfg.frontend, imu_buffer, latest_estimate.get)
+    keyframe_consumers: list[Stage] = []
+    imu_consumers: list[Stage] = []
+    fe_stage = FrontendStage(
+        frontend, recorder, keyframe_consumers, viewer, threaded, cfg.player.frame_queue_size
+    )
+    stages: list[Stage] = [fe_stage, *keyframe_consumers]
+    if viewer is not None:
+        stages.append(viewer)
+    for s in stages:
+        s.start()
+
+    stats: dict[str, Any] = {}
+    frames_in = frames_dropped = 0
+    interrupted = False
+    error: StageError | None = None
+    t_wall0 = time.perf_counter()
+    t_first_ns: int | None = None
+    t_last_ns = 0
+    last_flush = t_wall0
+    speed = cfg.player.speed
+    total = (
+        seq.num_frames if not cfg.player.max_frames else min(cfg.player.max_frames, seq.num_frames)
+    )
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, unit="frame", desc=f"slam run {seq.name}", leave=True)
+
+    def make_stats() -> dict[str, Any]:
+        wall = time.perf_counter() - t_wall0
+        seq_s = (t_last_ns - (t_first_ns or t_last_ns)) * 1e-9
+        _, _, lat = recorder.snapshot()
+        fe = frontend.stats
+        return {
+            "sequence": seq.name,
+            "preset": cfg.preset,
+            "frames_in": frames_in,
+            "frames_processed": fe.frames,
+            "frames_tracked": fe.tracked,
+            "frames_dropped": frames_dropped,
+            "frames_lost": fe.lost_frames,
+            "tracking_losses": fe.tracking_losses,
+            "map_segments": fe.segments,
+            "keyframes": fe.keyframes,
+            "sequence_duration_s": seq_s,
+            "wall_time_s": wall,
+            "real_time_factor": seq_s / wall if wall > 0 else 0.0,
+            "speed": speed,
+            "sequential": sequential,
+            "latency": {
+                "frontend_frame": _percentiles(lat),
+                **{f"stage_{s.name}": s.latency_stats() for s in stages},
+            },
+            "peak_rss_mb": peak_rss_mb(),
+            "events": [{"t_ns": t, "event": e} for t, e in fe.state_log],
+            "sequence_warnings": list(seq.warnings),
+            "interrupted": interrupted,
+            "error": str(error) if error else None,
+        }
+
+    def flush() -> None:
+        if out_dir is None:
+            return
+        traj, kfs, _ = recorder.snapshot()
+        write_run_outputs(out_dir, traj, kfs, make_stats(), config_to_yaml(cfg))
+
+    try:
+        for msg in seq.messages():
+            if t_first_ns is None:
+                t_first_ns = msg.t_ns
+            if speed > 0:
+                ahead = (msg.t_ns - t_first_ns) * 1e-9 / speed - (time.perf_counter() - t_wall0)
+                if ahead > 0:
+                    time.sleep(ahead)
+            if isinstance(msg, ImuSample):
+                if imu_buffer is not None:
+                    imu_buffer.append(msg)
+                for consumer in imu_consumers:
+                    consumer.put(msg)
+                continue
+            if cfg.player.max_frames and frames_in >= cfg.player.max_frames:
+                break
+            frames_in += 1
+            t_last_ns = msg.t_ns
+            accepted = fe_stage.put(msg, block=sequential or speed <= 0)
+            if not accepted:
+                frames_dropped += 1
+            failed = next((s.error for s in stages if s.error is not None), None)
+            if failed is not None:
+                error = failed
+                break
+            if bar is not None:
+                bar.update(1)
+                if frames_in % 10 == 0:
+                    wall = time.perf_counter() - t_wall0
+                    seq_s = (t_last_ns - t_first_ns) * 1e-9
+                    bar.set_postfix(
+                        rtf=f"{seq_s / max(wall, 1e-9):.2f}",
+                        state=recorder.last_state,
+                        dropped=frames_dropped,
+                        refresh=False,
+                    )
+            now = time.perf_counter()
+            if now - last_flush > FLUSH_EVERY_S:
+                flush()
+                last_flush = now
+    except KeyboardInterrupt:
+        interrupted = True
+        for s in stages:
+            s.abort()
+    finally:
+        for s in stages:  # in wiring order: upstream stages finish before their consumers
+            s.close()
+            s.join()
+        if bar is not None:
+            bar.close()
+        if error is None:
+            error = next((s.error for s in stages if s.error is not None), None)
+        if rec is not None:
+            rec.flush()
+            rec.disconnect()
+        stats = make_stats()
+        traj, kfs, _ = recorder.snapshot()
+        if out_dir is not None:
+            write_run_outputs(out_dir, traj, kfs, stats, config_to_yaml(cfg))
+    return RunResult(out_dir, traj, kfs, stats, interrupted, error, list(seq.warnings))
+
+
+__all__ = ["RunResult", "run_slam", "Keyframe"]

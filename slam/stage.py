@@ -1,0 +1,154 @@
+"""The pipeline stage: one loop, one bounded input queue, timing, error capture, shutdown.
+
+A stage implements ``process(msg)``. Concurrent mode runs it in its own thread, fed through a
+bounded queue and ended by an :class:`EndOfStream` sentinel. Sequential mode (``threaded=False``)
+calls ``process`` directly from ``put``, so the whole pipeline runs depth-first in one thread in
+time order: deterministic, for tests and debugging. Both modes run the same code.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+import traceback
+from abc import ABC, abstractmethod
+from typing import Any
+
+import numpy as np
+
+from slam.messages import EndOfStream
+
+log = logging.getLogger(__name__)
+
+
+class StageError(RuntimeError):
+    """An exception inside a stage, re-raised by the pipeline with the stage's name."""
+
+    def __init__(self, stage: str, exc: BaseException, trace: str):
+        super().__init__(f"stage '{stage}' failed: {type(exc).__name__}: {exc}")
+        self.stage = stage
+        self.trace = trace
+
+
+class Stage(ABC):
+    """Base class of every pipeline stage."""
+
+    def __init__(self, name: str, maxsize: int, threaded: bool):
+        self.name = name
+        self.threaded = threaded
+        self.queue: queue.Queue[Any] = queue.Queue(maxsize=maxsize)
+        self.latencies_ms: list[float] = []
+        self.error: StageError | None = None
+        self.dropped = 0
+        self.ended = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+
+    # -- to implement ------------------------------------------------------------------------
+    @abstractmethod
+    def process(self, msg: Any) -> None:
+        """Handle one message (may emit to downstream stages)."""
+
+    def on_end(self) -> None:
+        """Called once after the last message (flush, pass EndOfStream downstream)."""
+        return None
+
+    # -- plumbing ----------------------------------------------------------------------------
+    def start(self) -> None:
+        if self.threaded and self._thread is None:
+            self._thread = threading.Thread(target=self._loop, name=self.name, daemon=True)
+            self._thread.start()
+
+    def put(self, msg: Any, block: bool = True) -> bool:
+        """Hand a message to the stage. Returns False when it was dropped (queue full, no block)."""
+        if self.error is not None:
+            return False
+        if not self.threaded:
+            if isinstance(msg, EndOfStream):
+                self._finish()
+            else:
+                self._handle(msg)
+            return True
+        try:
+            self.queue.put(msg, block=block, timeout=None)
+            return True
+        except queue.Full:
+            self.dropped += 1
+            return False
+
+    def close(self) -> None:
+        """Signal end of input (the sentinel always gets through, even to a full queue)."""
+        if not self.threaded:
+            self._finish()
+            return
+        while self._thread is not None and self._thread.is_alive():
+            try:
+                self.queue.put(EndOfStream(), timeout=0.1)
+                return
+            except queue.Full:
+                continue
+
+    def abort(self) -> None:
+        """Stop as soon as possible, discarding queued input (Ctrl-C or another stage failed)."""
+        self._stop.set()
+        self.close()
+
+    def join(self, timeout: float | None = None) -> None:
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def _handle(self, msg: Any) -> None:
+        t0 = time.perf_counter()
+        try:
+            self.process(msg)
+        except Exception as exc:  # captured, reported with the stage name by the pipeline
+            self.error = StageError(self.name, exc, traceback.format_exc())
+            log.error("%s", self.error)
+        self.latencies_ms.append((time.perf_counter() - t0) * 1e3)
+
+    def _finish(self) -> None:
+        if self.ended.is_set():
+            return
+        try:
+            self.on_end()
+        except Exception as exc:
+            self.error = self.error or StageError(self.name, exc, traceback.format_exc())
+        self.ended.set()
+
+    def _loop(self) -> None:
+        while True:
+            msg = self.queue.get()
+            if isinstance(msg, EndOfStream):
+                break
+            if self._stop.is_set() or self.error is not None:
+                continue  # drain without work until the sentinel
+            self._handle(msg)
+        self._finish()
+
+    def latency_stats(self) -> dict[str, float]:
+        """p50/p90/p99/max of process() time in ms."""
+        if not self.latencies_ms:
+            return {"count": 0}
+        a = np.asarray(self.latencies_ms)
+        return {
+            "count": len(a),
+            "p50_ms": float(np.percentile(a, 50)),
+            "p90_ms": float(np.percentile(a, 90)),
+            "p99_ms": float(np.percentile(a, 99)),
+            "max_ms": float(a.max()),
+        }
+
+
+class Latest:
+    """An atomically swapped reference to the latest immutable snapshot (never waits)."""
+
+    def __init__(self) -> None:
+        self._value: Any = None
+
+    def get(self) -> Any:
+        return self._value
+
+    def set(self, value: Any) -> None:
+        self._value = value  # a single reference assignment is atomic under the GIL
