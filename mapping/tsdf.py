@@ -1,0 +1,320 @@
+"""Sparse voxel-block TSDF fusion of depth maps (KinectFusion-style projective TSDF).
+
+Storage: blocks of ``B^3`` voxels (B = 8 by default) allocated only where a depth map has seen a
+surface (within the truncation band). Block coordinates are packed into int64 keys kept in a
+sorted array, so lookup and allocation are vectorised (``np.searchsorted``), not a Python dict.
+Per-block data live in pooled arrays indexed by slot: ``tsdf`` (normalised signed distance in
+[-1, 1], positive in front of the surface), ``weight`` (float32, 0 = never observed) and ``color``
+(uint8 RGB running average).
+
+Voxel ``g = (i, j, k)`` (global integer index) sits at ``g * voxel_m`` in the world frame; it lives
+in block ``b = floor(g / B)`` at local index ``g - b * B``, flattened as ``(x * B + y) * B + z``.
+
+Integration is a weighted running average; de-integration subtracts the same observation again,
+which is exact as long as weights are not clamped (``max_weight=None``). Loop corrections use it:
+de-integrate a keyframe with its old pose, integrate it with the new one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+_KEY_BITS = 21
+_KEY_OFFSET = 1 << (_KEY_BITS - 1)
+_KEY_MASK = (1 << _KEY_BITS) - 1
+
+
+def pack_block_keys(block_xyz: np.ndarray) -> np.ndarray:
+    """(N, 3) int block coordinates (|c| < 2^20) -> (N,) int64 keys, ordered lexicographically."""
+    c = np.asarray(block_xyz, dtype=np.int64) + _KEY_OFFSET
+    return (c[:, 0] << (2 * _KEY_BITS)) | (c[:, 1] << _KEY_BITS) | c[:, 2]
+
+
+def unpack_block_keys(keys: np.ndarray) -> np.ndarray:
+    """(N,) int64 keys -> (N, 3) int64 block coordinates."""
+    k = np.asarray(keys, dtype=np.int64)
+    out = np.stack(
+        [(k >> (2 * _KEY_BITS)) & _KEY_MASK, (k >> _KEY_BITS) & _KEY_MASK, k & _KEY_MASK], axis=1
+    )
+    return out - _KEY_OFFSET
+
+
+@dataclass(frozen=True)
+class TsdfConfig:
+    """Parameters of a :class:`TsdfVolume`."""
+
+    voxel_m: float = 0.02
+    """Voxel edge length (m)."""
+    truncation_m: float | None = None
+    """Truncation distance (m); None = 4 voxels."""
+    block_size: int = 8
+    """Voxels per block edge."""
+    min_depth_m: float = 0.1
+    """Depth below this is ignored."""
+    max_depth_m: float = 5.0
+    """Depth beyond this is ignored."""
+    allocation_stride: int = 4
+    """Pixel stride of the subsampled depth used to find the blocks to allocate."""
+    max_weight: float | None = None
+    """Clamp of the per-voxel weight (None: no clamp, keeps de-integration exact)."""
+
+    @property
+    def trunc_m(self) -> float:
+        return self.truncation_m if self.truncation_m is not None else 4.0 * self.voxel_m
+
+
+@dataclass(frozen=True)
+class IntegrationStats:
+    """What one integration touched."""
+
+    blocks_touched: int
+    blocks_allocated: int
+    voxels_updated: int
+
+
+class TsdfVolume:
+    """A sparse, growable TSDF over voxel blocks (see the module docstring)."""
+
+    def __init__(
+        self,
+        config: TsdfConfig | None = None,
+        initial_capacity: int = 1024,
+        chunk_blocks: int = 128,
+    ) -> None:
+        self.config = config or TsdfConfig()
+        self.chunk_blocks = chunk_blocks
+        b = self.config.block_size
+        self._nvox = b**3
+        self._keys_sorted = np.zeros(0, dtype=np.int64)  # sorted block keys
+        self._slots_sorted = np.zeros(0, dtype=np.int64)  # slot of each sorted key
+        self._num_blocks = 0
+        self._block_xyz = np.zeros((initial_capacity, 3), dtype=np.int64)
+        self.tsdf = np.ones((initial_capacity, self._nvox), dtype=np.float32)
+        self.weight = np.zeros((initial_capacity, self._nvox), dtype=np.float32)
+        self.color = np.zeros((initial_capacity, self._nvox, 3), dtype=np.uint8)
+        g = np.arange(b)
+        local = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
+        self._local_m = (local * self.config.voxel_m).astype(np.float32)  # (B^3, 3)
+
+    # --- block bookkeeping ---------------------------------------------------------------------
+    @property
+    def num_blocks(self) -> int:
+        return self._num_blocks
+
+    def block_coords(self) -> np.ndarray:
+        """(N, 3) int64 block coordinates of every allocated block, in slot order."""
+        return self._block_xyz[: self._num_blocks]
+
+    def lookup(self, keys: np.ndarray) -> np.ndarray:
+        """Slots of the given block keys, -1 where a block is not allocated."""
+        keys = np.asarray(keys, dtype=np.int64)
+        if len(self._keys_sorted) == 0:
+            return np.full(len(keys), -1, dtype=np.int64)
+        pos = np.searchsorted(self._keys_sorted, keys)
+        pos_c = np.minimum(pos, len(self._keys_sorted) - 1)
+        found = self._keys_sorted[pos_c] == keys
+        return np.where(found, self._slots_sorted[pos_c], -1)
+
+    def _allocate(self, keys: np.ndarray) -> tuple[np.ndarray, int]:
+        """Slots for unique ``keys``, allocating missing blocks. Returns (slots, number new)."""
+        slots = self.lookup(keys)
+        missing = slots < 0
+        n_new = int(missing.sum())
+        if n_new:
+            new_keys = keys[missing]
+            start = self._num_blocks
+            self._reserve(start + n_new)
+            new_slots = np.arange(start, start + n_new, dtype=np.int64)
+            self._block_xyz[start : start + n_new] = unpack_block_keys(new_keys)
+            self._num_blocks += n_new
+            all_keys = np.concatenate([self._keys_sorted, new_keys])
+            all_slots = np.concatenate([self._slots_sorted, new_slots])
+            order = np.argsort(all_keys, kind="stable")
+            self._keys_sorted = all_keys[order]
+            self._slots_sorted = all_slots[order]
+            slots[missing] = new_slots
+        return slots, n_new
+
+    def _reserve(self, n: int) -> None:
+        cap = len(self.tsdf)
+        if n <= cap:
+            return
+        new_cap = max(n, 2 * cap)
+        grow = new_cap - cap
+        self._block_xyz = np.concatenate([self._block_xyz, np.zeros((grow, 3), np.int64)])
+        self.tsdf = np.concatenate([self.tsdf, np.ones((grow, self._nvox), np.float32)])
+        self.weight = np.concatenate([self.weight, np.zeros((grow, self._nvox), np.float32)])
+        self.color = np.concatenate([self.color, np.zeros((grow, self._nvox, 3), np.uint8)])
+
+    # --- integration ---------------------------------------------------------------------------
+    def _blocks_near_surface(
+        self, depth_m: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray
+    ) -> np.ndarray:
+        """Unique keys of the blocks within the truncation band of a (subsampled) depth map."""
+        cfg = self.config
+        s = max(1, int(cfg.allocation_stride))
+        d = depth_m[::s, ::s].astype(np.float32)
+        v, u = np.nonzero((d > cfg.min_depth_m) & (d < cfg.max_depth_m))
+        z = d[v, u]
+        x = (u * s - K[0, 2]) / K[0, 0]
+        y = (v * s - K[1, 2]) / K[1, 1]
+        rays = np.stack([x, y, np.ones_like(x)], axis=1).astype(np.float32)  # z = 1 rays
+        block_m = cfg.voxel_m * cfg.block_size
+        trunc = cfg.trunc_m
+        n_steps = max(2, int(np.ceil(2 * trunc / (0.5 * block_m))) + 1)
+        offsets = np.linspace(-trunc, trunc, n_steps, dtype=np.float32)
+        rot = world_from_cam[:3, :3].astype(np.float32)
+        origin = world_from_cam[:3, 3].astype(np.float32)
+        keys = []
+        for off in offsets:
+            p_cam = rays * (z + off)[:, None]
+            p_world = p_cam @ rot.T + origin
+            blocks = np.floor(p_world / block_m).astype(np.int64)
+            keys.append(np.unique(pack_block_keys(blocks)))
+        return np.unique(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
+
+    def integrate(
+        self,
+        depth_m: np.ndarray,
+        K: np.ndarray,
+        world_from_cam: np.ndarray,
+        color: np.ndarray | None = None,
+        weight: float = 1.0,
+    ) -> IntegrationStats:
+        """Fuse one depth map (H, W) in metres (0 or NaN = invalid) seen from ``world_from_cam``.
+
+        ``K`` is the 3x3 pinhole matrix of the (undistorted) depth image; ``color`` (H, W, 3)
+        uint8 RGB registered to the depth. A negative ``weight`` removes an observation (see
+        :meth:`deintegrate`).
+        """
+        cfg = self.config
+        depth = np.nan_to_num(np.asarray(depth_m, dtype=np.float32), nan=0.0)
+        h, w = depth.shape
+        keys = self._blocks_near_surface(depth, K, world_from_cam)
+        if weight > 0:
+            slots, n_new = self._allocate(keys)
+        else:  # de-integration never allocates
+            slots = self.lookup(keys)
+            slots = slots[slots >= 0]
+            n_new = 0
+        if len(slots) == 0:
+            return IntegrationStats(0, 0, 0)
+        cam_from_world = np.linalg.inv(world_from_cam)
+        k_rot = (K @ cam_from_world[:3, :3]).astype(np.float32)
+        k_trans = (K @ cam_from_world[:3, 3]).astype(np.float32)
+        depth_flat = np.zeros(h * w + 1, dtype=np.float32)  # last entry: 0 for "outside"
+        depth_flat[:-1] = depth.ravel()
+        depth_flat[(depth_flat < cfg.min_depth_m) | (depth_flat > cfg.max_depth_m)] = 0.0
+        color_flat = None if color is None else np.ascontiguousarray(color).reshape(-1, 3)
+        # Chunks of blocks keep every temporary in cache (~64k voxels): 2-3x faster than one pass.
+        n_upd = 0
+        for c0 in range(0, len(slots), self.chunk_blocks):
+            n_upd += self._integrate_blocks(
+                slots[c0 : c0 + self.chunk_blocks],
+                k_rot,
+                k_trans,
+                depth_flat,
+                (h, w),
+                color_flat,
+                np.float32(weight),
+            )
+        return IntegrationStats(len(slots), n_new, n_upd)
+
+    def _integrate_blocks(
+        self,
+        slots: np.ndarray,
+        k_rot: np.ndarray,
+        k_trans: np.ndarray,
+        depth_flat: np.ndarray,
+        hw: tuple[int, int],
+        color_flat: np.ndarray | None,
+        wgt: np.float32,
+    ) -> int:
+        """Update the voxels of some blocks from one depth map; returns the voxels updated."""
+        cfg = self.config
+        h, w = hw
+        # Image-plane homogeneous coordinates K (R p + t) of every voxel, assembled per block as
+        # origin term + local term so no (Nb * B^3, 3) matrix product is needed.
+        block_m = cfg.voxel_m * cfg.block_size
+        origins = (self._block_xyz[slots] * block_m).astype(np.float32) @ k_rot.T + k_trans
+        local = self._local_m @ k_rot.T  # (B^3, 3)
+        zc = origins[:, 2:3] + local[None, :, 2]  # (Nb, B^3) depth along the optical axis
+        inv_z = np.float32(1.0) / np.maximum(zc, np.float32(cfg.min_depth_m))
+        u = (origins[:, 0:1] + local[None, :, 0]) * inv_z
+        u += np.float32(0.5)  # round to the nearest pixel centre
+        v = (origins[:, 1:2] + local[None, :, 1]) * inv_z
+        v += np.float32(0.5)
+        ui = u.astype(np.int32)
+        vi = v.astype(np.int32)
+        # Negative indices become huge as uint32, so one comparison checks both bounds.
+        inside = (ui.view(np.uint32) < w) & (vi.view(np.uint32) < h) & (zc > cfg.min_depth_m)
+        pix = vi * np.int32(w) + ui
+        pix[~inside] = h * w
+        d = depth_flat[pix]
+        sdf = d - zc
+        trunc = np.float32(cfg.trunc_m)
+        upd = (d > 0) & (sdf >= -trunc)
+        n_upd = int(np.count_nonzero(upd))
+        if n_upd == 0:
+            return 0
+        obs = np.minimum(sdf * (np.float32(1.0) / trunc), np.float32(1.0))
+        w_old = self.weight[slots]
+        t_old = self.tsdf[slots]
+        # Arithmetic masking (no np.where: data-dependent selects are slow on big masks).
+        inc = upd.astype(np.float32) * wgt
+        w_new = w_old + inc
+        denom = np.maximum(w_new, np.float32(1e-6))
+        t_new = t_old + inc * (obs - t_old) / denom  # running mean; unchanged where inc == 0
+        np.clip(t_new, -1.0, 1.0, out=t_new)
+        if color_flat is not None:
+            # Colour only matters near the zero crossing: update it within half the band.
+            near = upd & (np.abs(sdf) < np.float32(0.5) * trunc)
+            bi, li = np.nonzero(near)
+            sl = slots[bi]
+            c_obs = color_flat[pix[bi, li]].astype(np.float32)
+            c_old = self.color[sl, li].astype(np.float32)
+            c_new = c_old + (c_obs - c_old) * (wgt / denom[bi, li])[:, None]
+            self.color[sl, li] = np.clip(c_new + 0.5, 0, 255).astype(np.uint8)
+        np.maximum(w_new, np.float32(0.0), out=w_new)
+        if cfg.max_weight is not None:
+            np.minimum(w_new, np.float32(cfg.max_weight), out=w_new)
+        self.tsdf[slots] = t_new
+        self.weight[slots] = w_new
+        return n_upd
+
+    def deintegrate(
+        self,
+        depth_m: np.ndarray,
+        K: np.ndarray,
+        world_from_cam: np.ndarray,
+        color: np.ndarray | None = None,
+    ) -> IntegrationStats:
+        """Remove a depth map integrated earlier with the same pose (exact without weight clamp)."""
+        return self.integrate(depth_m, K, world_from_cam, color, weight=-1.0)
+
+    # --- queries -------------------------------------------------------------------------------
+    def voxel_positions(self, slots: np.ndarray | None = None) -> np.ndarray:
+        """(N, B^3, 3) float64 world positions of the voxels of the given blocks (all by default)."""
+        if slots is None:
+            slots = np.arange(self._num_blocks)
+        block_m = self.config.voxel_m * self.config.block_size
+        origins = self._block_xyz[slots] * block_m
+        return origins[:, None, :] + self._local_m[None, :, :].astype(np.float64)
+
+    def surface_points(self, max_abs_tsdf: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+        """Voxels near the zero crossing: (N, 3) world positions and (N, 3) uint8 colours."""
+        n = self._num_blocks
+        near = (self.weight[:n] > 0) & (np.abs(self.tsdf[:n]) < max_abs_tsdf)
+        bi, vi = np.nonzero(near)
+        block_m = self.config.voxel_m * self.config.block_size
+        pts = self._block_xyz[bi] * block_m + self._local_m[vi]
+        return pts, self.color[bi, vi]
+
+    def observed_voxel_count(self) -> int:
+        return int((self.weight[: self._num_blocks] > 0).sum())
+
+    def memory_bytes(self) -> int:
+        n = self._num_blocks
+        return int(self.tsdf[:n].nbytes + self.weight[:n].nbytes + self.color[:n].nbytes)
