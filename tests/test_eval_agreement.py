@@ -9,9 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import require
 
 from slam.evaluation import evaluate as ev
-from conftest import require
 
 evo_fi = pytest.importorskip("evo.tools.file_interface")
 from evo.core.metrics import PoseRelation, Unit  # noqa: E402
