@@ -114,9 +114,17 @@ def _timeline(seq: Sequence) -> Iterator[tuple[int, int, ImuSample | StereoFrame
 
 
 def write_sequence_mcap(
-    seq: Sequence, path: str | os.PathLike[str], *, progress: bool = True
+    seq: Sequence,
+    path: str | os.PathLike[str],
+    *,
+    progress: bool = True,
+    chunk_size_bytes: int = CHUNK_SIZE_BYTES,
 ) -> None:
-    """Write any :class:`Sequence` as our self-contained ROS 2 MCAP file (atomically)."""
+    """Write any :class:`Sequence` as our self-contained ROS 2 MCAP file (atomically).
+
+    ``chunk_size_bytes``: uncompressed size at which a chunk is closed (smaller = finer random
+    access and damage isolation, larger = slightly better compression).
+    """
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     calib = seq.calibration
@@ -124,7 +132,7 @@ def write_sequence_mcap(
     fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=f".{out.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as fh:
-            writer = Writer(fh, chunk_size=CHUNK_SIZE_BYTES, compression=CompressionType.ZSTD)
+            writer = Writer(fh, chunk_size=chunk_size_bytes, compression=CompressionType.ZSTD)
             writer.start(profile="ros2", library="pyvislam")
             writer.add_metadata(CALIBRATION_METADATA, {"json": json.dumps(calib.to_dict())})
             writer.add_metadata(SEQUENCE_METADATA, {"name": seq.name, "format_version": "1"})

@@ -16,6 +16,7 @@ classes. :class:`ChunkCache` re-reads large payloads (images) on demand.
 
 from __future__ import annotations
 
+import mmap
 import os
 import struct
 import zlib
@@ -102,7 +103,11 @@ class ScanResult:
         return ""
 
 
-def _decompress(compression: str, data: bytes, uncompressed_size: int) -> bytes:
+class UnsupportedCompression(InputError):
+    """A chunk compression this reader cannot decode (not damage: re-raised, not skipped)."""
+
+
+def _decompress(compression: str, data: bytes | memoryview, uncompressed_size: int) -> bytes:
     if compression == "zstd":
         import zstandard
 
@@ -113,7 +118,9 @@ def _decompress(compression: str, data: bytes, uncompressed_size: int) -> bytes:
         return bytes(lz4.frame.decompress(data))
     if compression == "":
         return bytes(data)
-    raise InputError(f"MCAP chunk compression {compression!r} is not supported (zstd, lz4, none)")
+    raise UnsupportedCompression(
+        f"MCAP chunk compression {compression!r} is not supported (zstd, lz4, none)"
+    )
 
 
 def _read_with(record_cls: Any, content: bytes) -> Any:
@@ -185,67 +192,67 @@ def scan_mcap(path: str | os.PathLike[str]) -> ScanResult:
     with open(path, "rb") as f:
         if f.read(8) != MAGIC:
             raise InputError(f"{path} is not an MCAP file (bad magic bytes)")
-        pos = 8
-        while True:
-            head = f.read(9)
-            if len(head) == 0:
-                break
-            if len(head) < 9:
-                result.lost_bytes = size - pos
-                break
-            op = head[0]
-            (length,) = struct.unpack_from("<Q", head, 1)
-            if pos + 9 + length > size:
-                result.lost_bytes = size - pos
-                break
-            if op == OP_CHUNK:
-                _read_chunk(f, pos + 9, length, result, col)
-            elif op == OP_MESSAGE:
-                content = f.read(length)
-                col.add(content, 0, length, -1, pos + 9)
-            elif op in (OP_SCHEMA, OP_CHANNEL, OP_HEADER, OP_METADATA):
-                content = f.read(length)
-                if op == OP_SCHEMA:
-                    s = _read_with(Schema, content)
-                    result.schemas[s.id] = s
-                elif op == OP_CHANNEL:
-                    c = _read_with(Channel, content)
-                    result.channels[c.id] = c
-                elif op == OP_HEADER:
-                    h = _read_with(Header, content)
-                    result.profile, result.library = h.profile, h.library
-                else:
-                    m = _read_with(Metadata, content)
-                    result.metadata[m.name] = dict(m.metadata)
-            else:
-                f.seek(length, os.SEEK_CUR)
-            pos += 9 + length
-            if op == OP_FOOTER:
-                result.complete = f.read(8) == MAGIC
-                break
+        with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+            _scan_top_level(mm, size, result, col)
     _finish(result, col)
     return result
 
 
-def _read_chunk(f: BinaryIO, at: int, length: int, result: ScanResult, col: _Collector) -> None:
-    fixed = f.read(min(length, 4096))
-    start, end, usize, crc, compression, rec_at = _parse_chunk_header(fixed)
+def _scan_top_level(mm: mmap.mmap, size: int, result: ScanResult, col: _Collector) -> None:
+    pos = 8
+    while True:
+        if pos == size:
+            break
+        if pos + 9 > size:
+            result.lost_bytes = size - pos
+            break
+        op = mm[pos]
+        (length,) = struct.unpack_from("<Q", mm, pos + 1)
+        body = pos + 9
+        if body + length > size:
+            result.lost_bytes = size - pos
+            break
+        if op == OP_CHUNK:
+            _read_chunk(mm, body, length, result, col)
+        elif op == OP_MESSAGE:
+            col.add(mm[body : body + length], 0, length, -1, body)
+        elif op == OP_SCHEMA:
+            s = _read_with(Schema, mm[body : body + length])
+            result.schemas[s.id] = s
+        elif op == OP_CHANNEL:
+            c = _read_with(Channel, mm[body : body + length])
+            result.channels[c.id] = c
+        elif op == OP_HEADER:
+            h = _read_with(Header, mm[body : body + length])
+            result.profile, result.library = h.profile, h.library
+        elif op == OP_METADATA:
+            m = _read_with(Metadata, mm[body : body + length])
+            result.metadata[m.name] = dict(m.metadata)
+        pos = body + length
+        if op == OP_FOOTER:
+            result.complete = mm[pos : pos + 8] == MAGIC
+            break
+
+
+def _read_chunk(mm: mmap.mmap, at: int, length: int, result: ScanResult, col: _Collector) -> None:
+    start, end, usize, crc, compression, rec_at = _parse_chunk_header(
+        mm[at : at + min(length, 4096)]
+    )
     data_offset = at + rec_at
     data_length = length - rec_at
-    f.seek(data_offset)
-    compressed = f.read(data_length)
     ref = ChunkRef(data_offset, data_length, compression, usize, start, end)
+    view = memoryview(mm)[data_offset : data_offset + data_length]
     try:
-        data = _decompress(compression, compressed, usize)
+        data = _decompress(compression, view, usize)
         if len(data) != usize:
             raise ValueError(f"chunk decompressed to {len(data)} bytes, expected {usize}")
         if crc != 0 and zlib.crc32(data) != crc:
             raise ValueError("CRC mismatch")
         chunk_col = _Collector()
         _scan_records(data, result, chunk_col, len(result.chunks), 0)
-    except (InputError, ValueError, struct.error, RuntimeError, Exception) as exc:  # noqa: BLE001
-        if isinstance(exc, InputError) and "not supported" in str(exc):
-            raise
+    except UnsupportedCompression:
+        raise
+    except Exception as exc:  # noqa: BLE001 - any decoder error means a damaged chunk
         result.skipped_chunks += 1
         result.skipped_span_ns += max(0, end - start)
         result.warnings.append(
@@ -253,6 +260,8 @@ def _read_chunk(f: BinaryIO, at: int, length: int, result: ScanResult, col: _Col
             f"messages logged {start * 1e-9:.3f}-{end * 1e-9:.3f} s are lost"
         )
         return
+    finally:
+        view.release()
     result.chunks.append(ref)
     for name in ("channel", "log_ns", "chunk", "offset", "length", "heads"):
         getattr(col, name).extend(getattr(chunk_col, name))
@@ -285,11 +294,13 @@ class ChunkCache:
         self.max_chunks = max_chunks
         self._cache: OrderedDict[int, bytes] = OrderedDict()
         self._file: BinaryIO | None = None
+        self._map: mmap.mmap | None = None
 
-    def _fh(self) -> BinaryIO:
-        if self._file is None:
+    def _mm(self) -> mmap.mmap:
+        if self._map is None:
             self._file = open(self.scan.path, "rb")  # noqa: SIM115 - closed in close()
-        return self._file
+            self._map = mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_READ)
+        return self._map
 
     def chunk_data(self, index: int) -> bytes:
         data = self._cache.get(index)
@@ -297,9 +308,9 @@ class ChunkCache:
             self._cache.move_to_end(index)
             return data
         ref = self.scan.chunks[index]
-        fh = self._fh()
-        fh.seek(ref.data_offset)
-        data = _decompress(ref.compression, fh.read(ref.data_length), ref.uncompressed_size)
+        with memoryview(self._mm()) as whole:
+            with whole[ref.data_offset : ref.data_offset + ref.data_length] as view:
+                data = _decompress(ref.compression, view, ref.uncompressed_size)
         self._cache[index] = data
         while len(self._cache) > self.max_chunks:
             self._cache.popitem(last=False)
@@ -316,13 +327,14 @@ class ChunkCache:
         if n <= SMALL_PAYLOAD_BYTES:
             return memoryview(s.heads[msg])
         if chunk < 0:
-            fh = self._fh()
-            fh.seek(off)
-            return memoryview(fh.read(n))
+            return memoryview(self._mm()[off : off + n])
         return memoryview(self.chunk_data(chunk))[off : off + n]
 
     def close(self) -> None:
         self._cache.clear()
+        if self._map is not None:
+            self._map.close()
+            self._map = None
         if self._file is not None:
             self._file.close()
             self._file = None

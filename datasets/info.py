@@ -1,0 +1,111 @@
+"""Human-readable summaries of sequences and MCAP files (what ``slam info`` prints)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from datasets.mcap_scan import ScanResult, scan_mcap
+from datasets.open import find_mcap, open_sequence
+from datasets.sequence import Sequence
+from datasets.timing import find_gaps, rate_hz
+from slam.errors import InputError
+
+
+def _span(t_ns: np.ndarray) -> str:
+    if len(t_ns) == 0:
+        return "none"
+    return f"{t_ns[0] * 1e-9:.3f} .. {t_ns[-1] * 1e-9:.3f} s ({(t_ns[-1] - t_ns[0]) * 1e-9:.2f} s)"
+
+
+def topic_lines(scan: ScanResult) -> list[str]:
+    """One line per topic: type, count, rate and span (from log times)."""
+    lines = [
+        f"MCAP {scan.path}: profile {scan.profile or '(none)'}, {scan.file_size / 1e6:.1f} MB, "
+        f"{len(scan.chunks)} chunks, metadata: {', '.join(scan.metadata) or 'none'}"
+    ]
+    width = max((len(t) for t in scan.topics()), default=5)
+    for topic, (schema, count) in scan.topics().items():
+        ids = scan.channel_ids(topic)
+        t = np.sort(scan.msg_log_ns[np.isin(scan.msg_channel, ids)])
+        enc = ",".join(sorted({scan.channels[c].message_encoding for c in ids}))
+        lines.append(
+            f"  {topic:<{width}}  {schema:<40} {enc:<5} {count:7d} msgs  "
+            f"{rate_hz(t):8.2f} Hz  {_span(t)}"
+        )
+    return lines
+
+
+def sequence_lines(seq: Sequence) -> list[str]:
+    """Counts, rates, gaps, calibration and ground-truth span of an opened sequence."""
+    ft = seq.frame_times_ns()
+    imu = seq.imu()
+    cal = seq.calibration
+    lines = [
+        f"sequence {seq.name!r} ({type(seq).__name__}): duration {seq.duration_ns * 1e-9:.3f} s",
+        f"  frames   {len(ft):7d} {'stereo' if cal.is_stereo else 'mono'}  "
+        f"{rate_hz(ft):7.2f} Hz  {_span(ft)}",
+        f"  imu      {len(imu):7d}         {rate_hz(imu.t_ns):7.2f} Hz  {_span(imu.t_ns)}",
+    ]
+    for what, t in (("frames", ft), ("imu", imu.t_ns)):
+        note = find_gaps(t).describe(what)
+        lines.append(f"  gaps     {note}" if note else f"  gaps     {what}: none")
+    lines.append("calibration:")
+    for cam in cal.cameras:
+        i = cam.intrinsics
+        dist = ", ".join(f"{d:.6g}" for d in i.distortion)
+        lines.append(
+            f"  {cam.name}: {i.width}x{i.height} fx {i.fx:.3f} fy {i.fy:.3f} cx {i.cx:.3f} "
+            f"cy {i.cy:.3f} {i.distortion_model} [{dist}]; body_from_cam t = "
+            f"{np.array2string(cam.body_from_cam[:3, 3], precision=4)} m"
+        )
+    if cal.is_stereo:
+        lines.append(f"  stereo baseline {cal.stereo_baseline_m() * 100:.2f} cm")
+    if cal.imu is not None:
+        m = cal.imu
+        lines.append(
+            f"  imu: {m.rate_hz:g} Hz, gyro noise {m.gyro_noise_density:.3e} rad/s/sqrt(Hz), "
+            f"gyro walk {m.gyro_random_walk:.3e}, accel noise {m.accel_noise_density:.3e} "
+            f"m/s^2/sqrt(Hz), accel walk {m.accel_random_walk:.3e}"
+        )
+    lines.append(f"  time offset (t_imu = t_cam + offset): {cal.time_offset_ns * 1e-6:.3f} ms")
+    gt = seq.ground_truth
+    if gt is None or len(gt) == 0:
+        lines.append("ground truth: none")
+    else:
+        covered = np.count_nonzero((ft >= gt.t_ns[0]) & (ft <= gt.t_ns[-1]))
+        lines.append(
+            f"ground truth: {len(gt)} poses, {rate_hz(gt.t_ns):.1f} Hz, {_span(gt.t_ns)}, "
+            f"path {gt.path_length_m():.2f} m, covers {covered}/{len(ft)} frames"
+        )
+    if seq.warnings:
+        lines.append(f"warnings ({len(seq.warnings)}):")
+        lines.extend(f"  - {w}" for w in seq.warnings)
+    else:
+        lines.append("warnings: none")
+    return lines
+
+
+def describe(path: str | os.PathLike[str], **open_kwargs: object) -> tuple[list[str], bool]:
+    """Summary lines of ``path`` and whether it opened as a sequence.
+
+    An MCAP file that is not a usable sequence (no camera topic, no calibration) still gets its
+    topic list, followed by the reason it cannot be used.
+    """
+    lines: list[str] = []
+    try:
+        seq = open_sequence(path, **open_kwargs)  # type: ignore[arg-type]
+    except InputError as exc:
+        mcap = find_mcap(path) if Path(path).exists() else None
+        if mcap is None:
+            raise
+        lines.extend(topic_lines(scan_mcap(mcap)))
+        lines.append(f"not usable as a sequence: {exc}")
+        return lines, False
+    scan = getattr(seq, "scan", None)
+    if isinstance(scan, ScanResult):
+        lines.extend(topic_lines(scan))
+    lines.extend(sequence_lines(seq))
+    return lines, True

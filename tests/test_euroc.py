@@ -1,0 +1,212 @@
+"""EuRoC / TUM-VI ASL folders: the shared V1_01 micro folder and small generated ones."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from conftest import require
+
+from datasets.euroc import (
+    EurocSequence,
+    read_euroc_groundtruth_full,
+    read_trajectory_file,
+)
+from datasets.mcap_io import McapSequence, write_sequence_mcap
+from datasets.memory import random_sequence
+from datasets.open import open_sequence
+from slam.geometry import invert_transform
+
+
+@pytest.fixture(scope="module")
+def micro(shared_data: Path) -> Path:
+    return require(shared_data / "euroc_v101_micro")
+
+
+def opencv_yaml(path: Path, key: str) -> np.ndarray:
+    """Independent reader: OpenCV's FileStorage understands the %YAML:1.0 sensor.yaml files."""
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    node = fs.getNode(key)
+    if node.isMap():  # EuRoC's T_BS: {cols, rows, data: [...]}
+        rows = int(node.getNode("rows").real())
+        node = node.getNode("data")
+        out = np.array([node.at(i).real() for i in range(node.size())]).reshape(rows, -1)
+    else:
+        out = np.array([node.at(i).real() for i in range(node.size())])
+    fs.release()
+    return out
+
+
+def test_micro_counts_and_calibration(micro: Path) -> None:
+    seq = open_sequence(micro)
+    assert isinstance(seq, EurocSequence)
+    assert seq.num_frames == 95
+    assert seq.num_imu == 29_120
+    # cam1/data.csv lists 4 extra rows without images: reported, not silently dropped
+    assert any("4 cam1" in w for w in seq.warnings)
+    cal = seq.calibration
+    assert cal.is_stereo
+    for cam in cal.cameras:
+        yaml_path = micro / "mav0" / cam.name / "sensor.yaml"
+        fu, fv, cu, cv = opencv_yaml(yaml_path, "intrinsics")
+        i = cam.intrinsics
+        assert (i.fx, i.fy, i.cx, i.cy) == (fu, fv, cu, cv)
+        assert (i.width, i.height) == (752, 480)
+        assert i.distortion_model == "radtan"
+        np.testing.assert_array_equal(
+            i.distortion, opencv_yaml(yaml_path, "distortion_coefficients")
+        )
+        T_BS = opencv_yaml(yaml_path, "T_BS")  # noqa: N806 - imu0's T_BS is identity
+        np.testing.assert_array_equal(cam.body_from_cam, T_BS)
+    assert cal.cam0.intrinsics.fx == 458.654 and cal.cameras[1].intrinsics.cx == 379.999
+    assert abs(cal.stereo_baseline_m() - 0.110) < 0.001  # EuRoC's 11 cm baseline
+    assert cal.imu is not None
+    assert cal.imu.gyro_noise_density == 1.6968e-04 and cal.imu.accel_random_walk == 3.0e-3
+    assert cal.imu.rate_hz == 200.0
+
+
+def test_micro_data_exact(micro: Path) -> None:
+    seq = EurocSequence(micro)
+    mav0 = micro / "mav0"
+    first_cam = (mav0 / "cam0" / "data.csv").read_text().splitlines()[1].split(",")
+    assert seq.frame_times_ns()[0] == int(first_cam[0]) == 1403715273262142976
+    f = seq.frame(10)
+    ref = cv2.imread(str(mav0 / "cam1" / "data" / f"{f.t_ns}.png"), cv2.IMREAD_UNCHANGED)
+    assert f.right is not None and f.right.dtype == np.uint8 and np.array_equal(f.right, ref)
+    imu = seq.imu()
+    row = (mav0 / "imu0" / "data.csv").read_text().splitlines()[1].split(",")
+    assert imu.t_ns[0] == int(row[0])
+    np.testing.assert_array_equal(imu.gyro_rad_s[0], [float(x) for x in row[1:4]])
+    np.testing.assert_array_equal(imu.accel_m_s2[0], [float(x) for x in row[4:7]])
+    assert abs(np.median(np.diff(imu.t_ns)) - 5_000_000) < 1000
+    assert seq.ground_truth is None  # the micro folder lacks state_groundtruth_estimate0/data.csv
+
+
+def test_micro_ground_truth_files(micro: Path) -> None:
+    gt_csv = micro / "groundtruth_openvins" / "V1_01_easy.csv"
+    traj, vel, bg, ba = read_euroc_groundtruth_full(gt_csv)
+    assert len(traj) == 2895 and vel.shape == bg.shape == ba.shape == (2895, 3)
+    row = gt_csv.read_text().splitlines()[1].split(",")
+    assert traj.t_ns[0] == int(row[0])
+    np.testing.assert_allclose(bg[0], [float(x) for x in row[11:14]])
+    np.testing.assert_allclose(ba[0], [float(x) for x in row[14:17]])
+    # the TUM text version of the same trajectory agrees (time parsed without float rounding)
+    tum = read_trajectory_file(micro / "groundtruth_openvins" / "V1_01_easy.txt")
+    assert len(tum) == len(traj)
+    assert np.max(np.abs(tum.t_ns - traj.t_ns)) <= 5_000  # the txt keeps 10 us digits
+    np.testing.assert_allclose(tum.positions_m, traj.positions_m, atol=1e-6)
+    dots = np.abs(np.sum(tum.q_wxyz * traj.q_wxyz, axis=1))
+    assert np.all(dots > 1 - 1e-9)
+    seq = open_sequence(micro, gt_path=gt_csv)
+    assert seq.ground_truth is not None and len(seq.ground_truth) == 2895
+
+
+def test_micro_convert_round_trip(micro: Path, tmp_path: Path) -> None:
+    seq = EurocSequence(micro)
+    out = tmp_path / "micro.mcap"
+    write_sequence_mcap(seq, out, progress=False)
+    back = McapSequence(out)
+    assert back.num_frames == 95 and back.num_imu == 29_120
+    np.testing.assert_array_equal(back.frame_times_ns(), seq.frame_times_ns())
+    np.testing.assert_array_equal(back.imu().accel_m_s2, seq.imu().accel_m_s2)
+    for i in (0, 47, 94):
+        a, b = back.frame(i), seq.frame(i)
+        assert np.array_equal(a.left, b.left) and np.array_equal(a.right, b.right)
+    assert back.calibration.to_dict() == seq.calibration.to_dict()
+
+
+def write_asl_folder(
+    root: Path, *, equidistant: bool = False, gt_folder: str = "state_groundtruth_estimate0"
+) -> object:
+    """A small ASL folder (TUM-VI flavour when ``equidistant``) from a random sequence."""
+    seq = random_sequence(num_frames=6, width=64, height=48, seed=5)
+    mav0 = root / "mav0"
+    cam_T_BS = []
+    for k, name in enumerate(("cam0", "cam1")):
+        d = mav0 / name / "data"
+        d.mkdir(parents=True)
+        lines = ["#timestamp [ns],filename"]
+        for f in seq.iter_frames():
+            img = f.left if k == 0 else f.right
+            cv2.imwrite(str(d / f"{f.t_ns}.png"), img)
+            lines.append(f"{f.t_ns},{f.t_ns}.png")
+        (mav0 / name / "data.csv").write_text("\n".join(lines) + "\n")
+        T_BS = seq.calibration.cameras[k].body_from_cam  # noqa: N806
+        cam_T_BS.append(T_BS)
+        model, coeffs = (
+            ("equidistant", "[0.01, -0.002, 0.001, -0.0003]")
+            if equidistant
+            else ("radial-tangential", "[-0.28, 0.07, 0.0002, 1.7e-05]")
+        )
+        (mav0 / name / "sensor.yaml").write_text(
+            "%YAML:1.0\ncamera_model: pinhole\nrate_hz: 20\nresolution: [64, 48]\n"
+            "intrinsics: [40.0, 41.0, 32.0, 24.0]\n"
+            f"distortion_model: {model}\ndistortion_coefficients: {coeffs}\n"
+            f"T_BS:\n  cols: 4\n  rows: 4\n  data: {T_BS.reshape(-1).tolist()}\n"
+        )
+    imu = seq.imu()
+    (mav0 / "imu0").mkdir()
+    rows = ["#timestamp [ns],wx,wy,wz,ax,ay,az"] + [
+        f"{t}," + ",".join(repr(float(x)) for x in np.r_[g, a])
+        for t, g, a in zip(imu.t_ns, imu.gyro_rad_s, imu.accel_m_s2)
+    ]
+    (mav0 / "imu0" / "data.csv").write_text("\n".join(rows) + "\n")
+    (mav0 / "imu0" / "sensor.yaml").write_text(
+        "%YAML:1.0\nrate_hz: 200\ngyroscope_noise_density: 0.00016\n"
+        "gyroscope_random_walk: 2.2e-05\naccelerometer_noise_density: 0.0028\n"
+        "accelerometer_random_walk: 0.00086\n"
+    )
+    gt = seq.ground_truth
+    assert gt is not None
+    (mav0 / gt_folder).mkdir()
+    rows = ["#timestamp,px,py,pz,qw,qx,qy,qz"] + [
+        f"{t}," + ",".join(repr(float(x)) for x in np.r_[p, q])
+        for t, p, q in zip(gt.t_ns, gt.positions_m, gt.q_wxyz)
+    ]
+    (mav0 / gt_folder / "data.csv").write_text("\n".join(rows) + "\n")
+    return seq
+
+
+def test_tumvi_style_folder(tmp_path: Path) -> None:
+    ref = write_asl_folder(tmp_path, equidistant=True, gt_folder="mocap0")
+    seq = open_sequence(tmp_path)
+    assert seq.warnings == []
+    assert seq.num_frames == 6
+    cal = seq.calibration
+    assert cal.cam0.intrinsics.distortion_model == "equidistant"
+    assert cal.cam0.intrinsics.distortion == (0.01, -0.002, 0.001, -0.0003)
+    np.testing.assert_allclose(
+        cal.cameras[1].body_from_cam, ref.calibration.cameras[1].body_from_cam
+    )  # type: ignore[attr-defined]
+    assert cal.imu is not None and cal.imu.accel_noise_density == 0.0028
+    for a, b in zip(seq.iter_frames(), ref.iter_frames(), strict=True):  # type: ignore[attr-defined]
+        assert (
+            a.t_ns == b.t_ns and np.array_equal(a.left, b.left) and np.array_equal(a.right, b.right)
+        )
+    np.testing.assert_array_equal(seq.imu().gyro_rad_s, ref.imu().gyro_rad_s)  # type: ignore[attr-defined]
+    assert seq.ground_truth is not None
+    np.testing.assert_array_equal(seq.ground_truth.t_ns, ref.ground_truth.t_ns)  # type: ignore[attr-defined]
+    np.testing.assert_allclose(seq.ground_truth.positions_m, ref.ground_truth.positions_m)  # type: ignore[attr-defined]
+
+
+def test_imu_T_BS_moves_cameras_and_ground_truth_to_imu(tmp_path: Path) -> None:  # noqa: N802
+    """With a non-identity imu0 T_BS the body frame becomes the IMU frame."""
+    write_asl_folder(tmp_path)
+    B_from_imu = np.eye(4)  # noqa: N806
+    B_from_imu[:3, 3] = [0.1, -0.2, 0.05]
+    yaml_path = tmp_path / "mav0" / "imu0" / "sensor.yaml"
+    yaml_path.write_text(
+        yaml_path.read_text() + f"T_BS:\n  data: {B_from_imu.reshape(-1).tolist()}\n"
+    )
+    plain = EurocSequence(tmp_path)  # cameras read relative to B, then moved to the IMU
+    cam0_T_BS = opencv_yaml(tmp_path / "mav0" / "cam0" / "sensor.yaml", "T_BS")  # noqa: N806
+    np.testing.assert_allclose(
+        plain.calibration.cam0.body_from_cam, invert_transform(B_from_imu) @ cam0_T_BS
+    )
+    assert plain.ground_truth is not None
+    gt_raw = read_trajectory_file(tmp_path / "mav0" / "state_groundtruth_estimate0" / "data.csv")
+    np.testing.assert_allclose(
+        plain.ground_truth.matrices(), gt_raw.matrices() @ B_from_imu, atol=1e-12
+    )

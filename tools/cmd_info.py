@@ -1,0 +1,54 @@
+"""`slam info SEQ`: what is in a sequence (topics, rates, gaps, calibration, ground truth)."""
+
+from __future__ import annotations
+
+import argparse
+
+from datasets.info import describe
+from tools.seq_args import SEQUENCE_HELP, add_sequence_args
+
+DESCRIPTION = (
+    """\
+Summarise a sequence: topics with types, counts and rates (MCAP), frame and IMU counts, rates,
+duration and gaps, the calibration (intrinsics, distortion, extrinsics, IMU noise, time offset),
+the ground-truth span, and every data-quality warning found while reading.
+
+An MCAP file that is not a usable sequence (e.g. odometry topics only, or no calibration) still
+gets its topic list, then the reason it cannot be used (exit status 2).
+
+"""
+    + SEQUENCE_HELP
+    + """
+examples:
+  slam info room.mcap
+  slam info ../shared/data/euroc_v101_micro
+  slam info bag.mcap --left-topic /camera/left/image_raw --right-topic /camera/right/image_raw \\
+      --imu-topic /imu/data --camchain camchain.yaml --imu-yaml imu.yaml
+"""
+)
+
+
+def run(args: argparse.Namespace) -> int:
+    lines, usable = describe(
+        args.seq,
+        left_topic=args.left_topic,
+        right_topic=args.right_topic,
+        imu_topic=args.imu_topic,
+        gt_topic=args.gt_topic,
+        camchain=args.camchain,
+        imu_yaml=args.imu_yaml,
+        gt_path=args.gt,
+    )
+    print("\n".join(lines))
+    return 0 if usable else 2
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "info",
+        help="summarise a sequence (topics, rates, gaps, calibration, ground truth)",
+        description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_sequence_args(p)
+    p.set_defaults(func=run)
