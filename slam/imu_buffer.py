@@ -65,3 +65,42 @@ def integrate_gyro(
         dt = (end - start) * 1e-9
         rot = rot @ so3_exp((s.gyro_rad_s - bias) * dt)
     return rot
+
+
+def propagate_pose(
+    samples: list[ImuSample],
+    t0_ns: int,
+    t1_ns: int,
+    world_from_body: np.ndarray,
+    velocity_world_m_s: np.ndarray,
+    bias_gyro_rad_s: np.ndarray,
+    bias_accel_m_s2: np.ndarray,
+    gravity_m_s2: float = 9.81,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Dead-reckon (world_from_body, velocity) from t0 to t1 with the IMU (world z up).
+
+    Piecewise-constant samples, the same model as the preintegration. Returns None when the
+    samples do not cover [t0, t1]. Used for the front end's pose prior, not for estimation.
+    """
+    if t1_ns <= t0_ns:
+        return world_from_body.copy(), velocity_world_m_s.copy()
+    if not samples or samples[0].t_ns > t0_ns + 10_000_000 or samples[-1].t_ns < t1_ns - 10_000_000:
+        return None
+    g = np.array([0.0, 0.0, -gravity_m_s2])
+    rot = world_from_body[:3, :3].copy()
+    pos = world_from_body[:3, 3].copy()
+    vel = np.asarray(velocity_world_m_s, dtype=float).copy()
+    for k, s in enumerate(samples):
+        start = max(s.t_ns, t0_ns)
+        end = min(samples[k + 1].t_ns if k + 1 < len(samples) else t1_ns, t1_ns)
+        if end <= start:
+            continue
+        dt = (end - start) * 1e-9
+        acc_world = rot @ (s.accel_m_s2 - bias_accel_m_s2) + g
+        pos = pos + vel * dt + 0.5 * acc_world * dt * dt
+        vel = vel + acc_world * dt
+        rot = rot @ so3_exp((s.gyro_rad_s - bias_gyro_rad_s) * dt)
+    out = np.eye(4)
+    out[:3, :3] = rot
+    out[:3, 3] = pos
+    return out, vel

@@ -26,7 +26,7 @@ from slam.config import FrontendConfig
 from slam.frontend.features import build_pyramid, detect_features, track_klt
 from slam.frontend.stereo import StereoMatcher
 from slam.geometry import invert_transform, make_transform
-from slam.imu_buffer import ImuBuffer, integrate_gyro
+from slam.imu_buffer import ImuBuffer, integrate_gyro, propagate_pose
 from slam.messages import Estimate, Keyframe, StereoFrame, TrackingResult
 
 MAX_STORED_KEYFRAME_POSES = 200
@@ -89,6 +89,8 @@ class FrontEnd:
         self.kf_poses: dict[int, np.ndarray] = {}
         self.applied_estimate: tuple[int, int] = (-1, -1)
         self.bias_gyro = np.zeros(3)
+        self.latest_estimate: Estimate | None = None
+        self.gravity_m_s2 = calib.imu.gravity_m_s2 if calib.imu else 9.81
 
     # ------------------------------------------------------------------ feedback
     def _apply_estimate(self) -> None:
@@ -99,6 +101,7 @@ class FrontEnd:
         if key == self.applied_estimate:
             return
         self.applied_estimate = key
+        self.latest_estimate = est
         self.bias_gyro = np.asarray(est.bias_gyro_rad_s, dtype=float)
         fe_pose = self.kf_poses.get(est.keyframe_id)
         if fe_pose is None or not self.mapped:
@@ -170,7 +173,8 @@ class FrontEnd:
         self.stats.frames += 1
         self._apply_estimate()
         image = frame.left
-        mean, std = float(image.mean()), float(image.std())
+        mean_a, std_a = cv2.meanStdDev(image)
+        mean, std = float(mean_a[0, 0]), float(std_a[0, 0])
         if mean < self.cfg.black_frame_max_mean or std < self.cfg.textureless_max_std:
             self.pyr_prev = None
             what = "black frame" if mean < self.cfg.black_frame_max_mean else "textureless frame"
@@ -184,8 +188,28 @@ class FrontEnd:
         self.t_prev_ns = frame.t_ns
         return result, kf
 
+    def _imu_prior(self, t_ns: int) -> np.ndarray | None:
+        """world_from_body at t_ns dead-reckoned with the IMU from the latest back-end estimate."""
+        est = self.latest_estimate
+        if est is None or self.imu is None or t_ns - est.t_ns > 3_000_000_000:
+            return None
+        out = propagate_pose(
+            self.imu.window(est.t_ns, t_ns),
+            est.t_ns,
+            t_ns,
+            est.world_from_body,
+            est.velocity_world_m_s,
+            est.bias_gyro_rad_s,
+            est.bias_accel_m_s2,
+            self.gravity_m_s2,
+        )
+        return None if out is None else out[0]
+
     def _predict_pose(self, t_ns: int, rot_b0_b1: np.ndarray | None) -> np.ndarray:
         assert self.world_from_body is not None
+        prior = self._imu_prior(t_ns)
+        if prior is not None:
+            return prior
         pose = self.world_from_body.copy()
         if self.prev_world_from_body is not None and self.prev_dt_ns > 0:
             # constant velocity over the frame interval
@@ -306,7 +330,10 @@ class FrontEnd:
         self.ages = np.zeros(0, np.int64)
         self.landmarks.clear()
         pose = self.last_known_pose.copy()
-        if self.t_prev_ns and self.stats.segments:
+        prior = self._imu_prior(frame.t_ns) if self.stats.segments else None
+        if prior is not None:
+            pose = prior  # dead-reckoned across the gap: the new segment starts where we are
+        elif self.t_prev_ns and self.stats.segments:
             rot = self._gyro_rotation(self.t_prev_ns, frame.t_ns)
             if rot is not None:
                 pose[:3, :3] = pose[:3, :3] @ rot

@@ -1,0 +1,58 @@
+"""The front end on real EuRoC V1_01 frames (the vehicle barely moves in these 95 frames)."""
+
+from __future__ import annotations
+
+import numpy as np
+from conftest import require
+
+from slam.config import FrontendConfig
+from slam.frontend.features import detect_features, track_klt
+from slam.frontend.stereo import StereoMatcher
+from slam.frontend.tracker import FrontEnd
+
+
+def _open(shared_data):
+    from datasets.open import open_sequence
+
+    return open_sequence(require(shared_data / "euroc_v101_micro"))
+
+
+def test_real_frames_track_without_loss_and_stay_put(shared_data):
+    seq = _open(shared_data)
+    fe = FrontEnd(seq.calibration, FrontendConfig())
+    positions = []
+    states = []
+    for frame in seq.iter_frames():
+        res, _ = fe.process(frame)
+        states.append(res.state)
+        assert res.world_from_body is not None, f"frame {frame.index} lost: {res.reason}"
+        positions.append(res.world_from_body[:3, 3])
+    assert states.count("lost") == 0
+    assert fe.stats.segments == 1
+    path = float(np.linalg.norm(np.diff(np.array(positions), axis=0), axis=1).sum())
+    assert path < 0.05, f"estimated path length {path:.3f} m"
+
+
+def test_grid_detection_and_klt_forward_backward(shared_data):
+    seq = _open(shared_data)
+    cfg = FrontendConfig()
+    f0, f1 = seq.frame(0), seq.frame(1)
+    px = detect_features(f0.left, np.zeros((0, 2)), cfg)
+    assert 100 <= len(px) <= cfg.max_features
+    tracked, ok = track_klt(f0.left, f1.left, px, cfg)
+    assert ok.mean() > 0.8
+    # the vehicle is almost still: tracked points barely move
+    assert np.median(np.linalg.norm(tracked[ok] - px[ok], axis=1)) < 2.0
+
+
+def test_stereo_depths_are_plausible(shared_data):
+    seq = _open(shared_data)
+    cfg = FrontendConfig()
+    f = seq.frame(0)
+    px = detect_features(f.left, np.zeros((0, 2)), cfg)
+    m = StereoMatcher(seq.calibration, cfg).match(f.left, f.right, px)
+    assert m.ok.sum() >= 40
+    z = m.points_cam0_m[m.ok, 2]
+    # the Vicon room: everything seen is between ~0.5 m and ~8 m away
+    assert 0.5 < np.median(z) < 8.0
+    assert (z > cfg.min_depth_m).all() and (z < cfg.max_depth_m).all()
