@@ -1,0 +1,204 @@
+"""Bad input is never silent and never a traceback: each case warns or raises InputError."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.writer import CompressionType, Writer
+
+from datasets import cdr
+from datasets.mcap_io import McapSequence, ros2_msgdef, write_sequence_mcap
+from datasets.mcap_scan import scan_mcap
+from datasets.memory import euroc_like_calibration, random_sequence
+from datasets.open import open_sequence
+from slam.errors import InputError
+from tools.cli import main as slam_main
+
+N_FRAMES = 40
+
+
+@pytest.fixture(scope="module")
+def good(tmp_path_factory: pytest.TempPathFactory):
+    """A sequence written with small chunks, so damage hits only part of it."""
+    seq = random_sequence(num_frames=N_FRAMES, width=96, height=72, seed=11)
+    path = tmp_path_factory.mktemp("bad") / "good.mcap"
+    write_sequence_mcap(seq, path, progress=False, chunk_size_bytes=48 * 1024)
+    return seq, path
+
+
+def _frames_by_time(seq) -> dict:  # type: ignore[no-untyped-def]
+    return {f.t_ns: f for f in seq.iter_frames()}
+
+
+def test_truncated_mcap_keeps_prefix(good, tmp_path: Path) -> None:
+    seq, path = good
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    back = McapSequence(cut)
+    assert any("truncated" in w and "bytes" in w for w in back.warnings)
+    assert 0.3 * N_FRAMES < back.num_frames < 0.7 * N_FRAMES
+    # the prefix that was read is exact; calibration survived (written first)
+    ref = _frames_by_time(seq)
+    np.testing.assert_array_equal(back.frame_times_ns(), seq.frame_times_ns()[: back.num_frames])
+    for f in back.iter_frames():
+        assert np.array_equal(f.left, ref[f.t_ns].left) and np.array_equal(
+            f.right, ref[f.t_ns].right
+        )
+    assert back.calibration.to_dict() == seq.calibration.to_dict()
+    n_imu = back.num_imu
+    assert 0 < n_imu < seq.num_imu
+    np.testing.assert_array_equal(back.imu().gyro_rad_s, seq.imu().gyro_rad_s[:n_imu])
+    # the mcap library's indexed reader cannot open the same file at all
+    from mcap.reader import make_reader
+
+    with open(cut, "rb") as fh, pytest.raises(Exception):  # noqa: B017, PT011
+        list(make_reader(fh).iter_messages())
+
+
+def test_corrupt_chunk_is_skipped(good, tmp_path: Path) -> None:
+    seq, path = good
+    scan = scan_mcap(path)
+    assert len(scan.chunks) > 6
+    ref_chunk = scan.chunks[len(scan.chunks) // 2]
+    data = bytearray(path.read_bytes())
+    mid = ref_chunk.data_offset + ref_chunk.data_length // 2
+    data[mid : mid + 64] = bytes(64)  # zero out 64 bytes inside one compressed chunk
+    bad = tmp_path / "corrupt.mcap"
+    bad.write_bytes(bytes(data))
+    back = McapSequence(bad)
+    assert sum("corrupt chunk" in w for w in back.warnings) == 1
+    assert back.num_frames < N_FRAMES
+    assert back.num_frames >= N_FRAMES - 6  # one chunk of 48 kB holds a few images at most
+    ref = _frames_by_time(seq)
+    for f in back.iter_frames():  # everything outside the bad chunk is intact
+        assert np.array_equal(f.left, ref[f.t_ns].left) and np.array_equal(
+            f.right, ref[f.t_ns].right
+        )
+
+
+def _write_raw(
+    path: Path,
+    frame_times: list[int],
+    imu_times: list[int],
+    *,
+    encoding_override: bytes | None = None,
+    calibration: bool = True,
+) -> None:
+    """Write a file message by message, in the given (possibly bad) order."""
+    cal = euroc_like_calibration(32, 24, stereo=False)
+    rng = np.random.default_rng(0)
+    with open(path, "wb") as fh:
+        w = Writer(fh, compression=CompressionType.ZSTD)
+        w.start(profile="ros2", library="test")
+        if calibration:
+            w.add_metadata("pyvislam.calibration", {"json": json.dumps(cal.to_dict())})
+        s_img = w.register_schema(
+            "sensor_msgs/msg/Image", "ros2msg", ros2_msgdef("sensor_msgs/msg/Image")
+        )
+        s_imu = w.register_schema(
+            "sensor_msgs/msg/Imu", "ros2msg", ros2_msgdef("sensor_msgs/msg/Imu")
+        )
+        c_img = w.register_channel("/cam0/image_raw", "cdr", s_img)
+        c_imu = w.register_channel("/imu0", "cdr", s_imu)
+        for t in frame_times:
+            data = cdr.encode_image_mono8(t, "cam0", rng.integers(0, 256, (24, 32), dtype=np.uint8))
+            if encoding_override is not None:
+                data = data.replace(b"mono8", encoding_override)
+            w.add_message(c_img, log_time=t, data=data, publish_time=t)
+        for t in imu_times:
+            data = cdr.encode_imu(t, "imu0", rng.normal(size=3), rng.normal(size=3))
+            w.add_message(c_imu, log_time=t, data=data, publish_time=t)
+        w.finish()
+
+
+def test_out_of_order_and_duplicates_counted(tmp_path: Path) -> None:
+    ms = 1_000_000
+    frames = [0, 50 * ms, 150 * ms, 100 * ms, 100 * ms, 200 * ms]  # 1 out of order, 1 duplicate
+    imu = [k * 5 * ms for k in range(41)]
+    imu[10], imu[11] = imu[11], imu[10]  # swapped pair
+    imu.insert(20, imu[20])  # duplicate
+    path = tmp_path / "order.mcap"
+    _write_raw(path, frames, imu)
+    seq = McapSequence(path)
+    assert seq.num_frames == 5
+    assert np.all(np.diff(seq.frame_times_ns()) > 0)
+    assert seq.num_imu == 41 and np.all(np.diff(seq.imu().t_ns) > 0)
+    text = " | ".join(seq.warnings)
+    assert (
+        "/cam0/image_raw: 1 out of time order (sorted), 1 with duplicate timestamps (dropped)"
+        in text
+    )
+    assert "/imu0: 1 out of time order (sorted), 1 with duplicate timestamps (dropped)" in text
+
+
+def test_imu_gap_is_warned(tmp_path: Path) -> None:
+    ms = 1_000_000
+    imu = [k * 5 * ms for k in range(200) if not 80 <= k < 120]  # 200 ms hole
+    path = tmp_path / "gap.mcap"
+    _write_raw(path, [0, 50 * ms], imu)
+    seq = McapSequence(path)
+    gap = [w for w in seq.warnings if "gap" in w]
+    assert len(gap) == 1 and "/imu0: 1 gap(s)" in gap[0] and "longest 205.0 ms" in gap[0]
+
+
+def test_unknown_encoding_lists_topics(tmp_path: Path) -> None:
+    path = tmp_path / "enc.mcap"
+    _write_raw(path, [0, 50_000_000], [0], encoding_override=b"yuv42")
+    with pytest.raises(InputError, match="'yuv42'") as err:
+        McapSequence(path)
+    assert "/cam0/image_raw [sensor_msgs/msg/Image" in str(err.value) and "/imu0" in str(err.value)
+
+
+def test_missing_topic_lists_topics(good) -> None:
+    _seq, path = good
+    with pytest.raises(InputError) as err:
+        open_sequence(path, right_topic="/stereo/right")
+    msg = str(err.value)
+    assert "/stereo/right not found" in msg
+    for topic in ("/cam0/image_raw", "/cam1/image_raw", "/imu0", "/groundtruth/pose"):
+        assert topic in msg
+
+
+def test_missing_calibration_says_how(tmp_path: Path) -> None:
+    path = tmp_path / "nocal.mcap"
+    _write_raw(path, [0, 50_000_000], [0], calibration=False)
+    with pytest.raises(InputError, match="--camchain camchain.yaml --imu-yaml imu.yaml"):
+        open_sequence(path)
+
+
+def test_missing_image_file_is_named(tmp_path: Path) -> None:
+    from test_euroc import write_asl_folder
+
+    write_asl_folder(tmp_path)
+    victim = sorted((tmp_path / "mav0" / "cam1" / "data").iterdir())[3]
+    victim.unlink()
+    with pytest.raises(InputError, match=f"image file missing: .*{victim.name}"):
+        open_sequence(tmp_path)
+
+
+def test_unrecognised_paths(tmp_path: Path) -> None:
+    (tmp_path / "notes.txt").write_text("hello")
+    with pytest.raises(InputError, match="not a sequence"):
+        open_sequence(tmp_path / "notes.txt")
+    with pytest.raises(InputError, match="no such file"):
+        open_sequence(tmp_path / "absent.mcap")
+    with pytest.raises(InputError, match="not a sequence"):
+        open_sequence(tmp_path)
+
+
+def test_cli_reports_one_line(good, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    _seq, path = good
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    assert slam_main(["info", str(cut)]) == 0
+    out = capsys.readouterr().out
+    assert "file is truncated" in out and "frames" in out
+    rc = slam_main(["convert", str(cut), str(tmp_path / "x.mcap"), "--right-topic", "/nope", "-q"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and "/nope not found" in err
+    assert not (tmp_path / "x.mcap").exists()
