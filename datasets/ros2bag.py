@@ -194,7 +194,7 @@ class Ros2McapSequence(Sequence):
         s = self.scan
         msgs = np.nonzero(np.isin(s.msg_channel, s.channel_ids(topic)))[0]
         stamps = np.array([cdr.stamp_ns(s.heads[i]) for i in msgs], dtype=np.int64)
-        zero = stamps == 0
+        zero = (stamps == 0) & (s.msg_log_ns[msgs] != 0)  # a zero stamp at log time 0 is real
         if np.any(zero):
             stamps[zero] = s.msg_log_ns[msgs[zero]]
             warnings.append(
