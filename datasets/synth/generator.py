@@ -1,0 +1,318 @@
+"""The synthetic sequence: a lazily rendered :class:`Sequence` with exact ground truth.
+
+``make_synthetic_sequence(profile="figure8", duration_s=..., seed=0)`` builds the motion, the
+scene around it (boxes kept away from the path), the EuRoC-like stereo calibration and the IMU
+stream; images are rendered on demand in ``frame(i)`` (a 20-minute sequence never lives in
+memory). Ground truth is world_from_body at the IMU times (200 Hz). Time starts at 0 ns for
+profiles, and at the file's first pose for ``trajectory_file``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from datasets.sequence import ImuArrays, Sequence
+from datasets.synth.imu_sim import read_imu_csv, simulate_imu
+from datasets.synth.render import StereoRenderer
+from datasets.synth.scene import Scene, build_scene, room_around_path
+from datasets.synth.trajectories import (
+    Motion,
+    ProfileMotion,
+    SplineMotion,
+    make_profile,
+    motion_from_file,
+)
+from slam.calibration import (
+    Calibration,
+    CameraCalibration,
+    CameraIntrinsics,
+    ImuCalibration,
+)
+from slam.errors import InputError
+from slam.messages import StereoFrame
+from slam.trajectory import Trajectory
+
+FRAME_RATE_HZ = 20.0
+IMU_RATE_HZ = 200.0
+
+# EuRoC MAV cam0/cam1 (VI-Sensor, MT9M034) as in the dataset's sensor.yaml files
+_EUROC_BODY_FROM_CAM0 = np.array(
+    [
+        [0.0148655429818, -0.999880929698, 0.00414029679422, -0.0216401454975],
+        [0.999557249008, 0.0149672133247, 0.025715529948, -0.064676986768],
+        [-0.0257744366974, 0.00375618835797, 0.999660727178, 0.00981073058949],
+        [0.0, 0.0, 0.0, 1.0],
+    ]
+)
+_EUROC_BODY_FROM_CAM1 = np.array(
+    [
+        [0.0125552670891, -0.999755099723, 0.0182237714554, -0.0198435579556],
+        [0.999598781151, 0.0130119051815, 0.0251588363115, 0.0453689425024],
+        [-0.0253898008918, 0.0179005838253, 0.999517347078, 0.00786212447038],
+        [0.0, 0.0, 0.0, 1.0],
+    ]
+)
+
+
+def euroc_like_calibration(imu: ImuCalibration | None = None) -> Calibration:
+    """Stereo 752x480 at 20 Hz with EuRoC's intrinsics, radtan distortion and extrinsics
+    (baseline 0.110 m), IMU at 200 Hz with the ADIS16448 noise figures."""
+    cam0 = CameraIntrinsics(
+        752, 480, 458.654, 457.296, 367.215, 248.375, "radtan",
+        (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05),
+    )  # fmt: skip
+    cam1 = CameraIntrinsics(
+        752, 480, 457.587, 456.134, 379.999, 255.238, "radtan",
+        (-0.28368365, 0.07451284, -0.00010473, -3.55590700e-05),
+    )  # fmt: skip
+    return Calibration(
+        cameras=(
+            CameraCalibration("cam0", cam0, _EUROC_BODY_FROM_CAM0.copy(), FRAME_RATE_HZ),
+            CameraCalibration("cam1", cam1, _EUROC_BODY_FROM_CAM1.copy(), FRAME_RATE_HZ),
+        ),
+        imu=imu or ImuCalibration(rate_hz=IMU_RATE_HZ),
+        time_offset_ns=0,
+    )
+
+
+@dataclass(frozen=True)
+class SynthOptions:
+    """What a synthetic sequence was made with (saved alongside it for reproducibility)."""
+
+    profile: str = "figure8"
+    duration_s: float | None = None  # None: the profile's default (or the whole file)
+    seed: int = 0  # noise seed (IMU noise, pixel noise)
+    scene_seed: int = 0  # textures and boxes
+    imu_noise: bool = True
+    blackout: tuple[float, float] | None = None  # (start_s, duration_s) of black frames
+    moving_start: bool = False
+    aliasing: bool = False  # identical boxes and long walls (perceptual aliasing)
+    pixel_noise_std: float = 0.0  # grey levels, Gaussian
+    trajectory_file: str | None = None
+    imu_csv: str | None = None
+
+
+class SyntheticSequence(Sequence):
+    """A rendered-on-demand sequence with exact ground truth, depth and scene geometry."""
+
+    def __init__(
+        self,
+        *,
+        name: str,
+        calibration: Calibration,
+        motion: Motion,
+        motion_t0_s: float,
+        scene: Scene,
+        frame_times_ns: np.ndarray,
+        imu: ImuArrays,
+        ground_truth: Trajectory,
+        options: SynthOptions,
+        imu_gyro_bias_rad_s: np.ndarray | None = None,
+        imu_accel_bias_m_s2: np.ndarray | None = None,
+    ) -> None:
+        super().__init__(name=name, calibration=calibration, ground_truth=ground_truth)
+        self.motion = motion
+        self.motion_t0_s = motion_t0_s  # motion time of t_ns = frame_times_ns[0] (or imu[0])
+        self.t0_ns = int(min(frame_times_ns[0], imu.t_ns[0] if len(imu) else frame_times_ns[0]))
+        self.scene = scene
+        self.options = options
+        self.imu_gyro_bias_rad_s = imu_gyro_bias_rad_s
+        self.imu_accel_bias_m_s2 = imu_accel_bias_m_s2
+        self._frame_times_ns = np.asarray(frame_times_ns, dtype=np.int64)
+        self._imu = imu
+        self._renderer: StereoRenderer | None = None
+
+    # --- Sequence interface ------------------------------------------------------------------
+    def frame_times_ns(self) -> np.ndarray:
+        return self._frame_times_ns
+
+    def imu(self) -> ImuArrays:
+        return self._imu
+
+    def frame(self, index: int) -> StereoFrame:
+        t_ns = int(self._frame_times_ns[index])
+        if self.is_blacked_out(index):
+            shape = (
+                self.calibration.cam0.intrinsics.height,
+                self.calibration.cam0.intrinsics.width,
+            )
+            black = np.zeros(shape, np.uint8)
+            return StereoFrame(t_ns=t_ns, left=black, right=black.copy(), index=index)
+        outs = self.renderer.render(self.world_from_body_at(t_ns))
+        images = [o.image for o in outs]
+        if self.options.pixel_noise_std > 0:
+            images = [self._add_pixel_noise(img, index, k) for k, img in enumerate(images)]
+        right = images[1] if len(images) > 1 else None
+        return StereoFrame(t_ns=t_ns, left=images[0], right=right, index=index)
+
+    # --- ground truth -----------------------------------------------------------------------
+    @property
+    def renderer(self) -> StereoRenderer:
+        if self._renderer is None:
+            self._renderer = StereoRenderer(self.scene, self.calibration.cameras)
+        return self._renderer
+
+    def motion_time_s(self, t_ns: np.ndarray | int) -> np.ndarray:
+        """Motion time (s) of sequence timestamps."""
+        return self.motion_t0_s + (np.asarray(t_ns, dtype=np.int64) - self.t0_ns) * 1e-9
+
+    def world_from_body_at(self, t_ns: int) -> np.ndarray:
+        """Exact 4x4 world_from_body at any time (not only ground-truth samples)."""
+        return self.motion.sample(np.array([self.motion_time_s(t_ns)])).world_from_body()[0]
+
+    def world_from_cam(self, index: int, cam: int = 0) -> np.ndarray:
+        """Exact 4x4 world_from_cam of frame ``index``."""
+        t_ns = int(self._frame_times_ns[index])
+        return self.world_from_body_at(t_ns) @ self.calibration.cameras[cam].body_from_cam
+
+    def depth(self, index: int, cam: int = 0) -> np.ndarray:
+        """Ground-truth depth (H, W) float32: z in the camera frame, metres (every pixel hits
+        a surface; blackout does not affect depth)."""
+        r = self.renderer.cameras[cam]
+        out = r.render(self.world_from_cam(index, cam), with_depth=True)
+        assert out.depth_m is not None
+        return out.depth_m
+
+    def is_blacked_out(self, index: int) -> bool:
+        if self.options.blackout is None:
+            return False
+        start_s, dur_s = self.options.blackout
+        t_rel = (int(self._frame_times_ns[index]) - self.t0_ns) * 1e-9
+        return start_s <= t_rel < start_s + dur_s
+
+    def scene_mesh(self) -> tuple[np.ndarray, np.ndarray]:
+        """Vertices (V, 3) and triangles (T, 3) of the true scene surface (world frame)."""
+        return self.scene.mesh()
+
+    def sample_surface_points(self, n: int, seed: int = 0) -> np.ndarray:
+        """``n`` points uniformly on the true visible surface (world frame)."""
+        pts = self.scene.sample_surface_points(n, seed=seed)
+        assert isinstance(pts, np.ndarray)
+        return pts
+
+    def _add_pixel_noise(self, image: np.ndarray, index: int, cam: int) -> np.ndarray:
+        rng = np.random.default_rng([self.options.seed, index, cam])
+        noisy = rng.standard_normal(image.shape, dtype=np.float32)
+        noisy *= np.float32(self.options.pixel_noise_std)
+        noisy += image
+        return np.clip(np.round(noisy), 0, 255).astype(np.uint8)
+
+
+def _camera_centres(motion: Motion, t_s: np.ndarray, calib: Calibration) -> np.ndarray:
+    poses = motion.sample(t_s).world_from_body()
+    centres = [poses[:, :3, 3]]
+    for cam in calib.cameras:
+        centres.append(poses[:, :3, :3] @ cam.body_from_cam[:3, 3] + poses[:, :3, 3])
+    return np.concatenate(centres)
+
+
+def make_synthetic_sequence(
+    profile: str = "figure8",
+    duration_s: float | None = None,
+    seed: int = 0,
+    *,
+    imu_noise: bool = True,
+    blackout: tuple[float, float] | None = None,
+    moving_start: bool = False,
+    aliasing: bool = False,
+    pixel_noise_std: float = 0.0,
+    scene_seed: int = 0,
+    trajectory_file: str | None = None,
+    imu_csv: str | None = None,
+    imu_calibration: ImuCalibration | None = None,
+    gyro_bias0_rad_s: np.ndarray | None = None,
+    accel_bias0_m_s2: np.ndarray | None = None,
+) -> SyntheticSequence:
+    """Build a synthetic stereo-inertial sequence (rendering happens lazily, per frame).
+
+    ``profile``: ``figure8``, ``loop``, ``aggressive`` or ``hall`` (see
+    :func:`datasets.synth.trajectories.make_profile`); ignored when ``trajectory_file`` (TUM or
+    EuRoC ground truth) is given. ``imu_csv``: a real EuRoC ``imu0/data.csv`` used instead of
+    the simulated IMU (it must share the trajectory file's clock). ``blackout``: (start_s,
+    duration_s) relative to the first frame, frames in it are black. ``seed`` drives the IMU
+    and pixel noise; ``scene_seed`` the textures and box sizes.
+    """
+    options = SynthOptions(
+        profile=profile if trajectory_file is None else "file",
+        duration_s=duration_s,
+        seed=seed,
+        scene_seed=scene_seed,
+        imu_noise=imu_noise,
+        blackout=blackout,
+        moving_start=moving_start,
+        aliasing=aliasing,
+        pixel_noise_std=pixel_noise_std,
+        trajectory_file=trajectory_file,
+        imu_csv=imu_csv,
+    )
+    if duration_s is not None and duration_s <= 0:
+        raise InputError(f"duration must be positive, got {duration_s} s")
+    if imu_csv is not None and trajectory_file is None:
+        raise InputError("--imu-csv needs --from-trajectory (the IMU must match a trajectory)")
+    calib = euroc_like_calibration(imu_calibration)
+    motion: Motion
+    if trajectory_file is not None:
+        motion = motion_from_file(trajectory_file)
+        assert isinstance(motion, SplineMotion)
+        span_s = motion.t_end_s - motion.t_start_s
+        dur = span_s if duration_s is None else min(duration_s, span_s)
+        t0_ns = motion.t0_ns
+        name = f"synth-{motion.name}"
+        kind = "room"
+        path_t = np.arange(0.0, dur, 0.05)
+        centres = _camera_centres(motion, path_t, calib)
+        room = room_around_path(centres)
+    else:
+        motion = make_profile(profile, moving_start=moving_start)
+        assert isinstance(motion, ProfileMotion)
+        dur = motion.default_duration_s if duration_s is None else float(duration_s)
+        t0_ns = 0
+        name = f"synth-{profile}"
+        kind = motion.kind
+        path_t = np.arange(0.0, max(dur, 150.0), 0.05)  # the scene must not depend on duration
+        centres = _camera_centres(motion, path_t, calib)
+        room = None
+    scene = build_scene(kind, room=room, path_m=centres, aliasing=aliasing, seed=scene_seed)
+    dur_ns = int(round(dur * 1e9))
+    frame_step = int(round(1e9 / FRAME_RATE_HZ))
+    imu_step = int(round(1e9 / calib.imu.rate_hz)) if calib.imu else 5_000_000
+    frame_times = t0_ns + np.arange(0, dur_ns + 1, frame_step, dtype=np.int64)
+    imu_times = t0_ns + np.arange(0, dur_ns + 1, imu_step, dtype=np.int64)
+    assert calib.imu is not None
+    bg = ba = None
+    if imu_csv is not None:
+        imu = read_imu_csv(imu_csv, int(frame_times[0]), int(frame_times[-1]))
+        if len(imu) == 0:
+            raise InputError(
+                f"{imu_csv}: no IMU samples within the trajectory's time span; "
+                "the IMU csv and the trajectory file must share one clock"
+            )
+    else:
+        sim = simulate_imu(
+            motion,
+            imu_times,
+            0.0,
+            calib.imu,
+            noise=imu_noise,
+            seed=seed,
+            gyro_bias0_rad_s=gyro_bias0_rad_s,
+            accel_bias0_m_s2=accel_bias0_m_s2,
+        )
+        imu, bg, ba = sim.arrays, sim.gyro_bias_rad_s, sim.accel_bias_m_s2
+    gt_samples = motion.sample((imu_times - t0_ns) * 1e-9)
+    ground_truth = Trajectory.from_matrices(imu_times, gt_samples.world_from_body())
+    return SyntheticSequence(
+        name=name,
+        calibration=calib,
+        motion=motion,
+        motion_t0_s=0.0,
+        scene=scene,
+        frame_times_ns=frame_times,
+        imu=imu,
+        ground_truth=ground_truth,
+        options=options,
+        imu_gyro_bias_rad_s=bg,
+        imu_accel_bias_m_s2=ba,
+    )
