@@ -54,7 +54,10 @@ class Prepared:
 
     @property
     def t_s(self) -> np.ndarray:
+        """Seconds from the first pair (pose index when the poses have no times)."""
         t = self.association.t_ns
+        if self.association.method == "index":
+            return np.arange(len(t), dtype=np.float64)
         return (t - t[0]).astype(np.float64) * 1e-9
 
     def alignment_dict(self) -> dict:
