@@ -32,7 +32,7 @@ def _top_view(
     points = est_xyz[:, :2].reshape(-1, 1, 2)
     segments = np.concatenate([points[:-1], points[1:]], axis=1)
     seg_err = 0.5 * (errors[:-1] + errors[1:]) if len(errors) > 1 else errors
-    lc = LineCollection(segments, cmap="viridis", linewidths=2.0)
+    lc = LineCollection(list(segments), cmap="viridis", linewidths=2.0)
     lc.set_array(seg_err)
     lc.set_clim(float(np.min(errors)), float(np.max(errors)))
     ax.add_collection(lc)
