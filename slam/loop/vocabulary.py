@@ -283,8 +283,8 @@ class Vocabulary:
         # IDF from the number of training images that contain each word.
         n_images = len(arrays)
         idf = np.zeros(len(leaf_nodes), dtype=np.float64)
-        for w, node in enumerate(leaf_nodes):
-            n_with = len(np.unique(image_of[leaf_members[int(node)]]))
+        for w, leaf in enumerate(leaf_nodes.tolist()):
+            n_with = len(np.unique(image_of[leaf_members[leaf]]))
             idf[w] = np.log(n_images / max(n_with, 1))
         return Vocabulary(
             np.array(node_desc), parents_arr, idf.astype(np.float32), branching, levels
