@@ -104,3 +104,31 @@ def test_default_vocabulary_ranks_revisit_first(shared_data: Path) -> None:
     iu = np.triu_indices(10, 1)
     others = np.delete(scores[iu], np.flatnonzero((iu[0] == 0) & (iu[1] == 9)))
     assert scores[0, 9] > others.max()  # the revisit outranks all 44 non-revisit pairs
+
+
+def test_slam_vocab_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from tools.cli import main as slam_main
+
+    for i, (_, photo) in enumerate(skimage_photos()[:3]):
+        cv2.imwrite(str(tmp_path / f"img{i}.png"), photo)
+    out = tmp_path / "v.npz"
+    assert (
+        slam_main(
+            [
+                "vocab",
+                "train",
+                str(tmp_path / "*.png"),
+                "--k",
+                "4",
+                "--levels",
+                "2",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
+    assert Vocabulary.load(out).num_words <= 16
+    assert slam_main(["vocab", "info", str(out)]) == 0
+    assert "words" in capsys.readouterr().out
+    assert slam_main(["vocab", "train", "--out", str(tmp_path / "x.npz")]) == 2
