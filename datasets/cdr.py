@@ -310,3 +310,40 @@ def decode_pose_stamped(
     pos = r.f64s(3)
     x, y, z, w = r.f64s(4)
     return t_ns, pos, (w, x, y, z)
+
+
+def _imu_layout(data: bytes | memoryview) -> tuple[int, int]:
+    """Byte offsets of angular_velocity and linear_acceleration in one Imu payload."""
+    r = _CdrReader(data)
+    r.header_ns()
+    r.f64s(4 + 9)
+    r._align(8)
+    gyro_at = r.pos
+    r.f64s(3 + 9)
+    r._align(8)
+    return gyro_at, r.pos
+
+
+def decode_imu_many(payloads: list[bytes]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Many sensor_msgs/msg/Imu payloads -> (t_ns (N,), gyro (N, 3), accel (N, 3)), vectorised.
+
+    Payloads with the same length, endianness and frame_id length share one layout, so each
+    such group is decoded as one (N, length) byte array.
+    """
+    n = len(payloads)
+    t = np.empty(n, np.int64)
+    gyro = np.empty((n, 3))
+    accel = np.empty((n, 3))
+    groups: dict[tuple[int, int, bytes], list[int]] = {}
+    for i, p in enumerate(payloads):
+        groups.setdefault((len(p), p[1] & 1, bytes(p[12:16])), []).append(i)
+    for (length, little, _), idx in groups.items():
+        e = "<" if little else ">"
+        rows = np.frombuffer(b"".join(payloads[i] for i in idx), np.uint8).reshape(len(idx), length)
+        g_at, a_at = _imu_layout(payloads[idx[0]])
+        sec = rows[:, 4:8].copy().view(e + "i4")[:, 0].astype(np.int64)
+        nsec = rows[:, 8:12].copy().view(e + "u4")[:, 0].astype(np.int64)
+        t[idx] = sec * 1_000_000_000 + nsec
+        gyro[idx] = rows[:, g_at : g_at + 24].copy().view(e + "f8")
+        accel[idx] = rows[:, a_at : a_at + 24].copy().view(e + "f8")
+    return t, gyro, accel

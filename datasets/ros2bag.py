@@ -231,14 +231,10 @@ class Ros2McapSequence(Sequence):
             return ImuArrays(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
         s = self.scan
         msgs = np.nonzero(np.isin(s.msg_channel, s.channel_ids(topic)))[0]
-        n = len(msgs)
-        t = np.empty(n, np.int64)
-        vals = np.empty((n, 6))
-        for k, i in enumerate(msgs):
-            t_ns, gyro, accel = cdr.decode_imu(s.heads[i])
-            t[k] = t_ns if t_ns else s.msg_log_ns[i]
-            vals[k, :3] = gyro
-            vals[k, 3:] = accel
+        t, gyro, accel = cdr.decode_imu_many([s.heads[i] for i in msgs])
+        zero = (t == 0) & (s.msg_log_ns[msgs] != 0)
+        t[zero] = s.msg_log_ns[msgs[zero]]
+        vals = np.concatenate([gyro, accel], axis=1)
         cleaned = sort_dedupe(t)
         note = cleaned.describe(topic)
         if note:

@@ -167,3 +167,17 @@ def test_atomic_write_leaves_no_partial_file(tmp_path: Path) -> None:
     with pytest.raises(Boom):
         write_sequence_mcap(seq, tmp_path / "x.mcap", progress=False)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_vectorised_imu_decode_matches_single() -> None:
+    rng = np.random.default_rng(4)
+    payloads = [
+        cdr.encode_imu(
+            int(rng.integers(0, 2 * 10**18)), fid, rng.normal(size=3), rng.normal(size=3)
+        )
+        for fid in ("imu0", "imu", "a_longer_frame_id", "imu0", "", "imu")
+    ]
+    t, gyro, accel = cdr.decode_imu_many(payloads)
+    for k, p in enumerate(payloads):
+        t1, g1, a1 = cdr.decode_imu(p)
+        assert t[k] == t1 and tuple(gyro[k]) == g1 and tuple(accel[k]) == a1

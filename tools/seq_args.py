@@ -20,7 +20,9 @@ SEQ can be:
 
 def add_sequence_args(parser: argparse.ArgumentParser, *, positional: str = "seq") -> None:
     """Add SEQ and the source options (topics, Kalibr calibration, ground-truth override)."""
-    parser.add_argument(positional, metavar="SEQ", help="sequence to read (see below)")
+    parser.add_argument(
+        positional, metavar="SEQ", help="sequence to read (see the description above)"
+    )
     g = parser.add_argument_group("sequence source options")
     g.add_argument("--left-topic", help="left/only camera topic (default /cam0/image_raw)")
     g.add_argument("--right-topic", help="right camera topic (default /cam1/image_raw if present)")
