@@ -1,0 +1,1 @@
+"""Visual-inertial back end: IMU preintegration, initialisation, fixed-lag smoothing."""

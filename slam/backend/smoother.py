@@ -1,0 +1,743 @@
+"""The visual-inertial estimator: an iSAM2 fixed-lag smoother over keyframe states.
+
+``VioBackend`` is a plain synchronous object (no threads): the pipeline stage feeds it
+``add_imu(sample)`` and ``add_keyframe(kf)``, and reads ``estimate()``. Per keyframe k it adds
+state ``X(k)`` (world_from_body, gtsam Pose3), ``V(k)`` (world velocity), ``B(k)`` (IMU biases),
+a ``CombinedImuFactor`` to the previous state (or, across an IMU gap, a weak VO relative-pose
+factor plus velocity/bias random walks), and Huber-robust ``GenericProjectionFactorCal3_S2``
+factors for the left and right camera (``body_P_sensor = body_from_cam``: EuRoC is not
+rectified, so no stereo factor) on landmarks ``L(id)``. A landmark enters once
+``min_keyframes_per_landmark`` keyframes in the window saw it and it triangulates with small
+reprojection error; later observations are gated by their predicted reprojection error; after
+each update landmarks whose newest observation is an outlier are culled (that observation is
+removed, no more are added). Old states and landmarks are marginalised by GTSAM's
+``IncrementalFixedLagSmoother`` (``lag_s``), so memory and cost stay bounded.
+
+Before initialisation the back end buffers keyframes and publishes uninitialised estimates in
+the front end's VO frame; after initialisation (``slam.backend.init``) everything is in a
+gravity-aligned world (z up), ``world = world_from_vo @ vo``.
+
+Failure handling: an exception from GTSAM (e.g. an indeterminate system) or a divergence
+(non-finite values, velocity or position jump from the IMU prediction, bias out of range)
+resets the smoother from the last good state (pose, velocity and bias priors), counts it and
+retries the keyframe; a second failure adds the keyframe without visual factors.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any, cast
+
+import gtsam
+import numpy as np
+
+from slam.backend.config import BackendConfig
+from slam.backend.imu import ImuBuffer, make_bias, preintegration_params
+from slam.backend.init import (
+    MovingInitResult,
+    is_still,
+    moving_init,
+    still_init_align,
+    still_init_kalman,
+    world_from_vo_gravity,
+)
+from slam.calibration import Calibration
+from slam.errors import SlamError
+from slam.geometry import invert_transform
+from slam.messages import Estimate, ImuSample, Keyframe
+
+log = logging.getLogger(__name__)
+
+
+def X(k: int) -> int:  # noqa: N802 - GTSAM's naming of state keys
+    return gtsam.symbol("x", k)
+
+
+def V(k: int) -> int:  # noqa: N802
+    return gtsam.symbol("v", k)
+
+
+def B(k: int) -> int:  # noqa: N802
+    return gtsam.symbol("b", k)
+
+
+def L(landmark_id: int) -> int:  # noqa: N802
+    return gtsam.symbol("l", int(landmark_id))
+
+
+class EstimatorFailure(RuntimeError):
+    """A divergence detected after an update (triggers a reset)."""
+
+
+@dataclass
+class _State:
+    """A keyframe state in the window."""
+
+    k: int
+    keyframe_id: int
+    t_ns: int
+    world_from_body_vo: np.ndarray | None
+
+
+@dataclass
+class _Obs:
+    k: int
+    uv_left: np.ndarray
+    uv_right: np.ndarray | None
+
+
+@dataclass
+class _GoodState:
+    """The newest state that passed the divergence checks (the reset point)."""
+
+    k: int
+    keyframe_id: int
+    t_ns: int
+    pose: gtsam.Pose3
+    velocity: np.ndarray
+    bias: gtsam.imuBias.ConstantBias
+    world_from_body_vo: np.ndarray | None
+    keyframe: Keyframe | None = None  # its observations seed the tracks after a reset
+
+
+@dataclass
+class BackendStats:
+    """Counters and timings; read them for logs, bench tables and tests."""
+
+    keyframes: int = 0
+    resets: int = 0
+    init_method: str = ""
+    init_t_ns: int = -1
+    observations_added: int = 0
+    observations_gated: int = 0
+    observations_removed: int = 0
+    landmarks_inserted: int = 0
+    landmarks_culled: int = 0
+    keyframes_without_visual: int = 0
+    update_times_s: list[float] = field(default_factory=list)  # wall time per add_keyframe
+    update_cpu_s: list[float] = field(default_factory=list)  # this thread's CPU time per call
+    factor_counts: list[int] = field(default_factory=list)
+    failures: list[str] = field(default_factory=list)
+
+
+class VioBackend:
+    """Stereo-inertial fixed-lag smoother with initialisation and failure recovery."""
+
+    def __init__(self, calibration: Calibration, config: BackendConfig | None = None) -> None:
+        if calibration.imu is None:
+            raise SlamError("the visual-inertial back end needs an IMU calibration; use stereo-vo")
+        self.calibration = calibration
+        self.config = config or BackendConfig()
+        self.imu_calibration = calibration.imu
+        self.imu = ImuBuffer(calibration.imu, self.config)
+        self.stats = BackendStats()
+        self._params = preintegration_params(calibration.imu)
+        cams = calibration.cameras[:2]
+        self._cal = [
+            gtsam.Cal3_S2(c.intrinsics.fx, c.intrinsics.fy, 0.0, c.intrinsics.cx, c.intrinsics.cy)
+            for c in cams
+        ]
+        self._k_mats = [c.intrinsics.K for c in cams]
+        self._body_from_cam = [np.asarray(c.body_from_cam, dtype=float) for c in cams]
+        self._body_p_cam = [gtsam.Pose3(m) for m in self._body_from_cam]
+        self._pixel_noise = gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Huber.Create(self.config.huber_k),
+            gtsam.noiseModel.Isotropic.Sigma(2, self.config.pixel_sigma_px),
+        )
+        self._initialized = False
+        self._world_from_vo = np.eye(4)
+        self._init_keyframes: list[Keyframe] = []
+        self._smoother: gtsam.IncrementalFixedLagSmoother | None = None
+        self._values = gtsam.Values()
+        self._states: list[_State] = []
+        self._landmarks: set[int] = set()
+        self._tracks: dict[int, list[_Obs]] = {}
+        self._culled: set[int] = set()
+        self._last_good: _GoodState | None = None
+        self._t_origin_ns: int | None = None
+        self._estimate = Estimate(
+            t_ns=0,
+            keyframe_id=-1,
+            initialized=False,
+            world_from_body=np.eye(4),
+            velocity_world_m_s=np.zeros(3),
+            bias_gyro_rad_s=np.zeros(3),
+            bias_accel_m_s2=np.zeros(3),
+            keyframe_poses={},
+            landmark_ids=np.zeros(0, np.int64),
+            landmark_positions_world=np.zeros((0, 3)),
+        )
+
+    # --- public API ------------------------------------------------------------------------------
+    @property
+    def initialized(self) -> bool:
+        return self._initialized
+
+    @property
+    def world_from_vo(self) -> np.ndarray:
+        """4x4 from the front end's VO frame to the back end's gravity-aligned world."""
+        return self._world_from_vo.copy()
+
+    def add_imu(self, sample: ImuSample) -> bool:
+        """Buffer one IMU sample (False when rejected: non-finite, saturated, out of order)."""
+        return self.imu.add(sample)
+
+    def estimate(self) -> Estimate:
+        """The latest published snapshot (immutable)."""
+        return self._estimate
+
+    def n_factors(self) -> int:
+        """Factors currently held by the smoother (bounded by the lag)."""
+        if self._smoother is None:
+            return 0
+        return int(self._smoother.getFactors().nrFactors())
+
+    def add_keyframe(self, kf: Keyframe) -> Estimate | None:
+        """Process one keyframe; returns the new estimate (initialised or not)."""
+        t_start = time.perf_counter()
+        cpu_start = time.thread_time()
+        self.stats.keyframes += 1
+        kf_pose_vo = _finite_pose(kf.world_from_body_vo)
+        if not self._initialized:
+            est = self._try_initialise(kf, kf_pose_vo)
+        else:
+            est = self._add_with_recovery(kf, kf_pose_vo)
+        self.stats.update_times_s.append(time.perf_counter() - t_start)
+        self.stats.update_cpu_s.append(time.thread_time() - cpu_start)
+        self.stats.factor_counts.append(self.n_factors())
+        if est is not None:
+            self._estimate = est
+        return est
+
+    def reset_from_last_good(self, reason: str = "requested") -> None:
+        """Rebuild the smoother from the last good state with pose/velocity/bias priors."""
+        good = self._last_good
+        if good is None:
+            raise SlamError("cannot reset the back end before it is initialised")
+        self.stats.resets += 1
+        msg = f"back end reset at keyframe {good.keyframe_id} ({reason})"
+        log.warning(msg)
+        if len(self.stats.failures) < 100:
+            self.stats.failures.append(msg)
+        self._start_smoother(
+            good.k,
+            good.keyframe_id,
+            good.t_ns,
+            good.pose,
+            good.velocity,
+            good.bias,
+            good.world_from_body_vo,
+        )
+        self._last_good = good
+        if good.keyframe is not None:
+            self._add_observations_as_tracks(good.keyframe, good.k)
+
+    # --- initialisation --------------------------------------------------------------------------
+    def _uninitialised_estimate(self, kf: Keyframe, pose_vo: np.ndarray | None) -> Estimate:
+        poses = {
+            k.keyframe_id: k.world_from_body_vo
+            for k in self._init_keyframes[-10:]
+            if _finite_pose(k.world_from_body_vo) is not None
+        }
+        return Estimate(
+            t_ns=kf.t_ns,
+            keyframe_id=kf.keyframe_id,
+            initialized=False,
+            world_from_body=pose_vo if pose_vo is not None else np.eye(4),
+            velocity_world_m_s=np.zeros(3),
+            bias_gyro_rad_s=np.zeros(3),
+            bias_accel_m_s2=np.zeros(3),
+            keyframe_poses=poses,
+            landmark_ids=np.zeros(0, np.int64),
+            landmark_positions_world=np.zeros((0, 3)),
+        )
+
+    def _try_initialise(self, kf: Keyframe, pose_vo: np.ndarray | None) -> Estimate:
+        cfg = self.config
+        if pose_vo is None:
+            return self._uninitialised_estimate(kf, None)
+        self._init_keyframes.append(kf)
+        self.imu.trim(self._init_keyframes[0].t_ns - int(2 * cfg.still_window_s * 1e9))
+        if cfg.init_mode in ("auto", "still"):
+            t, g, a = self.imu.window(kf.t_ns - int(cfg.still_window_s * 1e9), kf.t_ns)
+            rate = self.imu_calibration.rate_hz
+            if len(t) >= 0.9 * cfg.still_window_s * rate and is_still(g, a, cfg, rate):
+                if cfg.still_init_method == "kalman":
+                    res = still_init_kalman(g, a, self.imu_calibration)
+                else:
+                    res = still_init_align(g, a)
+                up_vo = pose_vo[:3, :3] @ res.up_body
+                self._world_from_vo = world_from_vo_gravity(up_vo, pose_vo[:3, 3])
+                pose_w = self._world_from_vo @ pose_vo
+                bias = make_bias(res.bias_gyro_rad_s, np.zeros(3))
+                return self._finish_init(kf, pose_w, np.zeros(3), bias, "still")
+        if cfg.init_mode in ("auto", "moving"):
+            kfs = self._init_keyframes[-3 * cfg.moving_init_keyframes :]
+            span_s = (kfs[-1].t_ns - kfs[0].t_ns) * 1e-9
+            if len(kfs) >= cfg.moving_init_keyframes and span_s >= cfg.moving_init_min_span_s:
+                res_m = self._moving_init(kfs)
+                if res_m is not None:
+                    self._world_from_vo = res_m.world_from_vo(kfs[0].world_from_body_vo[:3, 3])
+                    pose_w = self._world_from_vo @ pose_vo
+                    vel_w = self._world_from_vo[:3, :3] @ res_m.velocities_vo_m_s[-1]
+                    bias = make_bias(res_m.bias_gyro_rad_s, res_m.bias_accel_m_s2)
+                    return self._finish_init(kf, pose_w, vel_w, bias, "moving")
+        self._init_keyframes = self._init_keyframes[-3 * cfg.moving_init_keyframes :]
+        return self._uninitialised_estimate(kf, pose_vo)
+
+    def _moving_init(self, kfs: list[Keyframe]) -> MovingInitResult | None:
+        t, g, a = self.imu.arrays()
+        res = moving_init(
+            np.array([k.t_ns for k in kfs], dtype=np.int64),
+            np.array([k.world_from_body_vo for k in kfs]),
+            t,
+            g,
+            a,
+            self.imu_calibration,
+            self.config,
+        )
+        if res is None:
+            return None
+        g_err = abs(res.gravity_norm_unconstrained_m_s2 - self.imu_calibration.gravity_m_s2)
+        if g_err > self.config.moving_init_max_gravity_error:
+            log.info("moving-start init rejected: |g| error %.3f m/s^2", g_err)
+            return None
+        return res
+
+    def _finish_init(
+        self,
+        kf: Keyframe,
+        pose_w: np.ndarray,
+        vel_w: np.ndarray,
+        bias: gtsam.imuBias.ConstantBias,
+        method: str,
+    ) -> Estimate:
+        self._initialized = True
+        self.stats.init_method = method
+        self.stats.init_t_ns = kf.t_ns
+        self._t_origin_ns = kf.t_ns
+        self._init_keyframes = []
+        log.info("back end initialised (%s start) at keyframe %d", method, kf.keyframe_id)
+        self._start_smoother(
+            0, kf.keyframe_id, kf.t_ns, gtsam.Pose3(pose_w), vel_w, bias, kf.world_from_body_vo
+        )
+        self._last_good.keyframe = kf  # type: ignore[union-attr]
+        self._add_observations_as_tracks(kf, 0)
+        return self._make_estimate()
+
+    # --- smoother plumbing -----------------------------------------------------------------------
+    def _t_rel_s(self, t_ns: int) -> float:
+        assert self._t_origin_ns is not None
+        return (t_ns - self._t_origin_ns) * 1e-9
+
+    def _smoother_update(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        stamps: dict[int, float],
+        remove: list[int] | None = None,
+    ) -> None:
+        """One smoother update (a seam for tests to inject failures)."""
+        self._live_smoother().update(graph, values, cast(Any, stamps), remove or [])
+
+    def _live_smoother(self) -> gtsam.IncrementalFixedLagSmoother:
+        if self._smoother is None:
+            raise RuntimeError("smoother used before initialisation")
+        return self._smoother
+
+    def _start_smoother(
+        self,
+        k: int,
+        keyframe_id: int,
+        t_ns: int,
+        pose: gtsam.Pose3,
+        velocity: np.ndarray,
+        bias: gtsam.imuBias.ConstantBias,
+        pose_vo: np.ndarray | None,
+    ) -> None:
+        cfg = self.config
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(cfg.relinearize_threshold)
+        params.relinearizeSkip = 1
+        self._smoother = gtsam.IncrementalFixedLagSmoother(cfg.lag_s, params)
+        graph = gtsam.NonlinearFactorGraph()
+        sr, sp = cfg.prior_pose_sigma_rad, cfg.prior_pose_sigma_m
+        graph.add(
+            gtsam.PriorFactorPose3(
+                X(k), pose, gtsam.noiseModel.Diagonal.Sigmas(np.array([sr, sr, sr, sp, sp, sp]))
+            )
+        )
+        graph.add(
+            gtsam.PriorFactorVector(
+                V(k),
+                np.asarray(velocity, float),
+                gtsam.noiseModel.Isotropic.Sigma(3, cfg.prior_velocity_sigma_m_s),
+            )
+        )
+        sa, sg = cfg.prior_bias_accel_sigma_m_s2, cfg.prior_bias_gyro_sigma_rad_s
+        graph.add(
+            gtsam.PriorFactorConstantBias(
+                B(k), bias, gtsam.noiseModel.Diagonal.Sigmas(np.array([sa, sa, sa, sg, sg, sg]))
+            )
+        )
+        values = gtsam.Values()
+        values.insert(X(k), pose)
+        values.insert(V(k), np.asarray(velocity, float))
+        values.insert(B(k), bias)
+        t = self._t_rel_s(t_ns)
+        self._smoother.update(graph, values, {X(k): t, V(k): t, B(k): t}, [])
+        self._values = self._live_smoother().calculateEstimate()
+        self._states = [_State(k, keyframe_id, t_ns, pose_vo)]
+        self._landmarks = set()
+        self._tracks = {}
+        self._last_good = _GoodState(
+            k, keyframe_id, t_ns, pose, np.asarray(velocity, float), bias, pose_vo
+        )
+
+    def _add_observations_as_tracks(self, kf: Keyframe, k: int) -> None:
+        for lid, uv_l, uv_r in _observations(kf, self.config.max_landmarks_per_keyframe):
+            if lid not in self._culled:
+                self._tracks.setdefault(lid, []).append(_Obs(k, uv_l, uv_r))
+
+    def _add_with_recovery(self, kf: Keyframe, pose_vo: np.ndarray | None) -> Estimate:
+        for attempt in range(3):
+            try:
+                self._add_state(kf, pose_vo, with_visual=attempt == 0)
+                return self._make_estimate()
+            except (RuntimeError, EstimatorFailure) as exc:
+                first_line = (str(exc).strip().splitlines() or [""])[0][:120]
+                self.reset_from_last_good(f"{type(exc).__name__}: {first_line}")
+        # three failures in a row: keep the last good state, publish it, and move on
+        return self._make_estimate()
+
+    def _add_state(self, kf: Keyframe, pose_vo: np.ndarray | None, with_visual: bool) -> None:
+        cfg = self.config
+        prev = self._states[-1]
+        k = prev.k + 1
+        vals = self._values
+        prev_pose = vals.atPose3(X(prev.k))
+        prev_vel = vals.atVector(V(prev.k))
+        prev_bias = vals.atConstantBias(B(prev.k))
+        graph = gtsam.NonlinearFactorGraph()
+        new_values = gtsam.Values()
+        pim = self.imu.preintegrate(self._params, prev_bias, prev.t_ns, kf.t_ns)
+        if pim is not None:
+            pred = pim.predict(gtsam.NavState(prev_pose, prev_vel), prev_bias)
+            pose_guess, vel_guess = pred.pose(), pred.velocity()
+            graph.add(
+                gtsam.CombinedImuFactor(X(prev.k), V(prev.k), X(k), V(k), B(prev.k), B(k), pim)
+            )
+        else:
+            self.imu.stats.intervals_without_imu += 1
+            dt = max((kf.t_ns - prev.t_ns) * 1e-9, 1e-3)
+            if pose_vo is not None and prev.world_from_body_vo is not None:
+                rel = gtsam.Pose3(invert_transform(prev.world_from_body_vo) @ pose_vo)
+            else:  # no IMU and no VO: constant velocity guess, very weak
+                rel = gtsam.Pose3(gtsam.Rot3(), prev_pose.rotation().unrotate(prev_vel * dt))
+            pose_guess = prev_pose.compose(rel)
+            vel_guess = prev_vel
+            sr, sp = cfg.no_imu_pose_sigma_rad, cfg.no_imu_pose_sigma_m
+            graph.add(
+                gtsam.BetweenFactorPose3(
+                    X(prev.k),
+                    X(k),
+                    rel,
+                    gtsam.noiseModel.Diagonal.Sigmas(np.array([sr, sr, sr, sp, sp, sp])),
+                )
+            )
+            graph.add(
+                gtsam.BetweenFactorVector(
+                    V(prev.k),
+                    V(k),
+                    np.zeros(3),
+                    gtsam.noiseModel.Isotropic.Sigma(3, cfg.no_imu_velocity_sigma_m_s),
+                )
+            )
+            imu = self.imu_calibration
+            sa = imu.accel_random_walk * np.sqrt(dt)
+            sg = imu.gyro_random_walk * np.sqrt(dt)
+            graph.add(
+                gtsam.BetweenFactorConstantBias(
+                    B(prev.k),
+                    B(k),
+                    make_bias(np.zeros(3), np.zeros(3)),
+                    gtsam.noiseModel.Diagonal.Sigmas(np.array([sa, sa, sa, sg, sg, sg])),
+                )
+            )
+        new_values.insert(X(k), pose_guess)
+        new_values.insert(V(k), vel_guess)
+        new_values.insert(B(k), prev_bias)
+        t = self._t_rel_s(kf.t_ns)
+        stamps: dict[int, float] = {X(k): t, V(k): t, B(k): t}
+
+        # visual factors
+        window_ks = {s.k for s in self._states} | {k}
+        poses = {s.k: vals.atPose3(X(s.k)).matrix() for s in self._states}
+        poses[k] = pose_guess.matrix()
+        factor_lids: list[int] = []  # landmark id of each new visual factor, -1 for others
+        factor_lids += [-1] * graph.size()
+        new_landmark_ids: set[int] = set()
+        if with_visual:
+            gate_px = 2.0 * cfg.outlier_reprojection_px
+            for lid, uv_l, uv_r in _observations(kf, cfg.max_landmarks_per_keyframe):
+                if lid in self._culled:
+                    continue
+                if lid in self._landmarks:
+                    p_w = vals.atPoint3(L(lid))
+                    err = self._reprojection_errors(poses[k], p_w, uv_l, uv_r)
+                    if not np.all(err < gate_px):
+                        self.stats.observations_gated += 1
+                        continue
+                    self._add_projection(graph, k, lid, uv_l, uv_r, factor_lids)
+                    stamps[L(lid)] = t
+                    continue
+                track = self._tracks.setdefault(lid, [])
+                track = [o for o in track if o.k in window_ks]
+                track.append(_Obs(k, uv_l, uv_r))
+                self._tracks[lid] = track
+                if len({o.k for o in track}) < cfg.min_keyframes_per_landmark:
+                    continue
+                p_tri = self._triangulate(track, poses)
+                if p_tri is None:
+                    if len(track) > 4:
+                        self._culled.add(lid)
+                        self._tracks.pop(lid, None)
+                    continue
+                new_values.insert(L(lid), p_tri)
+                stamps[L(lid)] = t
+                for o in track:
+                    self._add_projection(graph, o.k, lid, o.uv_left, o.uv_right, factor_lids)
+                new_landmark_ids.add(lid)
+                self._tracks.pop(lid, None)
+        else:
+            self.stats.keyframes_without_visual += 1
+        self._smoother_update(graph, new_values, stamps)
+        new_indices = list(self._live_smoother().getISAM2Result().getNewFactorsIndices())
+        for _ in range(cfg.extra_iterations):
+            self._smoother_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), {})
+        values = self._live_smoother().calculateEstimate()
+        self._check_state(values, k, pose_guess, vel_guess, imu_ok=pim is not None)
+
+        # accepted: commit bookkeeping
+        self._values = values
+        self._landmarks |= new_landmark_ids
+        self.stats.landmarks_inserted += len(new_landmark_ids)
+        self.stats.observations_added += sum(1 for x in factor_lids if x >= 0)
+        self._states.append(_State(k, kf.keyframe_id, kf.t_ns, pose_vo))
+        self._states = [s for s in self._states if values.exists(X(s.k))]
+        self._landmarks = {lid for lid in self._landmarks if values.exists(L(lid))}
+        oldest_k = self._states[0].k
+        for lid in list(self._tracks):
+            tr = [o for o in self._tracks[lid] if o.k >= oldest_k]
+            if tr:
+                self._tracks[lid] = tr
+            else:
+                del self._tracks[lid]
+        if with_visual:
+            self._cull_outliers(values, k, factor_lids, new_indices, new_landmark_ids)
+        self._last_good = _GoodState(
+            k,
+            kf.keyframe_id,
+            kf.t_ns,
+            values.atPose3(X(k)),
+            values.atVector(V(k)),
+            values.atConstantBias(B(k)),
+            pose_vo,
+            kf,
+        )
+        self.imu.trim(self._states[0].t_ns - int(1e9))
+
+    def _add_projection(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        k: int,
+        lid: int,
+        uv_l: np.ndarray,
+        uv_r: np.ndarray | None,
+        factor_lids: list[int],
+    ) -> None:
+        graph.add(
+            gtsam.GenericProjectionFactorCal3_S2(
+                uv_l, self._pixel_noise, X(k), L(lid), self._cal[0], self._body_p_cam[0]
+            )
+        )
+        factor_lids.append(lid)
+        if uv_r is not None and len(self._cal) > 1 and self.config.right_camera_factors:
+            graph.add(
+                gtsam.GenericProjectionFactorCal3_S2(
+                    uv_r, self._pixel_noise, X(k), L(lid), self._cal[1], self._body_p_cam[1]
+                )
+            )
+            factor_lids.append(lid)
+
+    def _reprojection_errors(
+        self,
+        world_from_body: np.ndarray,
+        p_w: np.ndarray,
+        uv_l: np.ndarray,
+        uv_r: np.ndarray | None,
+    ) -> np.ndarray:
+        """Pixel errors of one landmark in the left (and right) camera; inf if behind."""
+        out = []
+        for cam, uv in ((0, uv_l), (1, uv_r)):
+            if uv is None or cam >= len(self._cal):
+                continue
+            cam_from_world = invert_transform(world_from_body @ self._body_from_cam[cam])
+            pc = cam_from_world[:3, :3] @ p_w + cam_from_world[:3, 3]
+            if pc[2] < self.config.min_depth_m:
+                out.append(np.inf)
+                continue
+            proj = self._k_mats[cam] @ (pc / pc[2])
+            out.append(float(np.hypot(proj[0] - uv[0], proj[1] - uv[1])))
+        return np.asarray(out)
+
+    def _triangulate(self, track: list[_Obs], poses: dict[int, np.ndarray]) -> np.ndarray | None:
+        """Linear (DLT) triangulation from every left/right view, then checks depth and error."""
+        rows = []
+        views = []
+        for o in track:
+            for cam, uv in ((0, o.uv_left), (1, o.uv_right)):
+                if uv is None or cam >= len(self._cal):
+                    continue
+                cam_from_world = invert_transform(poses[o.k] @ self._body_from_cam[cam])
+                xn = np.linalg.solve(self._k_mats[cam], np.array([uv[0], uv[1], 1.0]))
+                p = cam_from_world[:3, :]
+                rows.append(xn[0] * p[2] - p[0])
+                rows.append(xn[1] * p[2] - p[1])
+                views.append(o)
+        if len(rows) < 4:
+            return None
+        _, _, vt = np.linalg.svd(np.asarray(rows))
+        h = vt[-1]
+        if abs(h[3]) < 1e-12:
+            return None
+        p_w = h[:3] / h[3]
+        for o in track:
+            err = self._reprojection_errors(poses[o.k], p_w, o.uv_left, o.uv_right)
+            if not np.all(err < self.config.outlier_reprojection_px):
+                return None
+            depth = np.linalg.norm(p_w - poses[o.k][:3, 3])
+            if depth > self.config.max_depth_m:
+                return None
+        return p_w
+
+    def _check_state(
+        self,
+        values: gtsam.Values,
+        k: int,
+        pose_guess: gtsam.Pose3,
+        vel_guess: np.ndarray,
+        imu_ok: bool,
+    ) -> None:
+        cfg = self.config
+        pose = values.atPose3(X(k))
+        vel = values.atVector(V(k))
+        bias = values.atConstantBias(B(k))
+        pos = pose.translation()
+        bg, ba = bias.gyroscope(), bias.accelerometer()
+        if not (
+            np.all(np.isfinite(pos))
+            and np.all(np.isfinite(vel))
+            and np.all(np.isfinite(bg))
+            and np.all(np.isfinite(ba))
+        ):
+            raise EstimatorFailure("non-finite state")
+        if np.linalg.norm(vel) > cfg.max_velocity_m_s:
+            raise EstimatorFailure(f"velocity {np.linalg.norm(vel):.1f} m/s")
+        if (
+            np.linalg.norm(bg) > cfg.max_bias_gyro_rad_s
+            or np.linalg.norm(ba) > cfg.max_bias_accel_m_s2
+        ):
+            raise EstimatorFailure("bias out of range")
+        if imu_ok:
+            if np.linalg.norm(vel - vel_guess) > cfg.max_velocity_jump_m_s:
+                raise EstimatorFailure("velocity jump")
+            if np.linalg.norm(pos - pose_guess.translation()) > cfg.max_position_jump_m:
+                raise EstimatorFailure("position jump")
+
+    def _cull_outliers(
+        self,
+        values: gtsam.Values,
+        k: int,
+        factor_lids: list[int],
+        indices: list[int],
+        new_landmarks: set[int],
+    ) -> None:
+        """After optimisation: newest observations with a large error are removed (landmark culled)."""
+        if len(indices) != len(factor_lids):
+            return
+        graph = self._live_smoother().getFactors()
+        bad_idx: list[int] = []
+        bad_lids: set[int] = set()
+        thr2 = self.config.outlier_reprojection_px**2
+        for lid, idx in zip(factor_lids, indices):
+            if lid < 0 or not graph.exists(idx):
+                continue
+            f = cast(Any, graph.at(idx))
+            # the unwhitened residual is the reprojection error in pixels (Huber-independent)
+            try:
+                r = f.unwhitenedError(values)
+            except RuntimeError:
+                r = np.array([np.inf, np.inf])
+            if float(r @ r) > thr2:
+                bad_lids.add(lid)
+                if lid not in new_landmarks and f.keys()[0] == X(k):
+                    bad_idx.append(idx)
+        if not bad_lids:
+            return
+        self._culled |= bad_lids
+        self.stats.landmarks_culled += len(bad_lids)
+        if bad_idx:
+            self._smoother_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), {}, bad_idx)
+            self.stats.observations_removed += len(bad_idx)
+            self._values = self._live_smoother().calculateEstimate()
+
+    def _make_estimate(self) -> Estimate:
+        vals = self._values
+        last = self._states[-1]
+        pose = vals.atPose3(X(last.k)).matrix()
+        bias = vals.atConstantBias(B(last.k))
+        lids = np.array(sorted(self._landmarks), dtype=np.int64)
+        pts = np.array([vals.atPoint3(L(int(i))) for i in lids]).reshape(-1, 3)
+        return Estimate(
+            t_ns=last.t_ns,
+            keyframe_id=last.keyframe_id,
+            initialized=True,
+            world_from_body=pose,
+            velocity_world_m_s=np.asarray(vals.atVector(V(last.k)), float),
+            bias_gyro_rad_s=np.asarray(bias.gyroscope(), float),
+            bias_accel_m_s2=np.asarray(bias.accelerometer(), float),
+            keyframe_poses={s.keyframe_id: vals.atPose3(X(s.k)).matrix() for s in self._states},
+            landmark_ids=lids,
+            landmark_positions_world=pts,
+        )
+
+
+def _finite_pose(pose: np.ndarray | None) -> np.ndarray | None:
+    """The pose as a float 4x4 if it is a finite rigid transform, else None."""
+    if pose is None:
+        return None
+    m = np.asarray(pose, dtype=float)
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        return None
+    r = m[:3, :3]
+    if not np.allclose(r.T @ r, np.eye(3), atol=1e-4):
+        return None
+    return m
+
+
+def _observations(kf: Keyframe, limit: int) -> list[tuple[int, np.ndarray, np.ndarray | None]]:
+    """(landmark id, left uv, right uv or None) for the finite observations of a keyframe."""
+    ids = np.asarray(kf.landmark_ids, dtype=np.int64)
+    left = np.asarray(kf.pixels_left_undist, dtype=float).reshape(-1, 2)
+    right = np.asarray(kf.pixels_right_undist, dtype=float).reshape(-1, 2)
+    ok_l = np.all(np.isfinite(left), axis=1)
+    ok_r = (
+        np.all(np.isfinite(right), axis=1) if len(right) == len(ids) else np.zeros(len(ids), bool)
+    )
+    out = []
+    for i in np.flatnonzero(ok_l)[:limit]:
+        out.append((int(ids[i]), left[i], right[i] if ok_r[i] else None))
+    return out
