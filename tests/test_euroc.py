@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import cv2
@@ -14,10 +15,11 @@ from datasets.euroc import (
     read_euroc_groundtruth_full,
     read_trajectory_file,
 )
-from datasets.mcap_io import McapSequence, write_sequence_mcap
+from datasets.mcap_io import McapSequence
 from datasets.memory import random_sequence
 from datasets.open import open_sequence
 from slam.geometry import invert_transform
+from tools.cli import main as slam_main
 
 
 @pytest.fixture(scope="module")
@@ -103,10 +105,19 @@ def test_micro_ground_truth_files(micro: Path) -> None:
     assert seq.ground_truth is not None and len(seq.ground_truth) == 2895
 
 
-def test_micro_convert_round_trip(micro: Path, tmp_path: Path) -> None:
+def test_micro_convert_round_trip(
+    micro: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`slam convert` of the folder, then `slam info` and a read back of the file."""
     seq = EurocSequence(micro)
     out = tmp_path / "micro.mcap"
-    write_sequence_mcap(seq, out, progress=False)
+    assert slam_main(["convert", str(micro), str(out), "-q"]) == 0
+    assert "wrote" in capsys.readouterr().out
+    assert slam_main(["info", str(out)]) == 0
+    info = capsys.readouterr().out
+    assert re.search(r"frames +95 stereo +20.00 Hz", info)
+    assert re.search(r"imu +29120 +200.00 Hz", info)
+    assert "stereo baseline 11.0" in info
     back = McapSequence(out)
     assert back.num_frames == 95 and back.num_imu == 29_120
     np.testing.assert_array_equal(back.frame_times_ns(), seq.frame_times_ns())
