@@ -14,6 +14,7 @@ from typing import Any
 
 import yaml
 
+from slam.backend.config import BackendConfig
 from slam.errors import SlamError
 
 
@@ -95,7 +96,11 @@ class SlamConfig:
     """Name of the preset this config started from."""
     use_imu: bool = False
     """Use the IMU (gyro prediction in the front end, the visual-inertial back end)."""
+    backend_process: bool = True
+    """Run the back end in a worker process (GTSAM holds the GIL for every call; a thread would
+    stall the front end). False runs it in a thread of this process."""
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
+    backend: BackendConfig = field(default_factory=BackendConfig)
     player: PlayerConfig = field(default_factory=PlayerConfig)
     viz: VizConfig = field(default_factory=VizConfig)
 
@@ -105,11 +110,14 @@ class SlamConfig:
 
 PRESETS: dict[str, dict[str, Any]] = {
     "stereo-vo": {"use_imu": False},
+    "euroc-stereo-imu": {"use_imu": True},
 }
 
 
-def _apply(obj: Any, overrides: dict[str, Any], where: str) -> None:
+def _apply(obj: Any, overrides: dict[str, Any], where: str) -> Any:
+    """A copy of dataclass ``obj`` with ``overrides`` applied (recursively, type-checked)."""
     names = {f.name: f for f in dataclasses.fields(obj)}
+    changes: dict[str, Any] = {}
     for key, value in overrides.items():
         if key not in names:
             raise SlamError(
@@ -119,21 +127,27 @@ def _apply(obj: Any, overrides: dict[str, Any], where: str) -> None:
         if dataclasses.is_dataclass(current) and not isinstance(current, type):
             if not isinstance(value, dict):
                 raise SlamError(f"config key {where}{key} must be a mapping")
-            _apply(current, value, f"{where}{key}.")
+            changes[key] = _apply(current, value, f"{where}{key}.")
         else:
             if isinstance(current, bool) and not isinstance(value, bool):
                 raise SlamError(f"config key {where}{key} must be true or false, got {value!r}")
-            if isinstance(current, float) and isinstance(value, int):
+            if (
+                isinstance(current, float)
+                and isinstance(value, int)
+                and not isinstance(value, bool)
+            ):
                 value = float(value)
-            setattr(obj, key, value)
+            elif isinstance(current, (int, float)) and not isinstance(value, (int, float)):
+                raise SlamError(f"config key {where}{key} must be a number, got {value!r}")
+            changes[key] = value
+    return dataclasses.replace(obj, **changes)
 
 
 def preset_config(name: str) -> SlamConfig:
     """The named preset."""
     if name not in PRESETS:
         raise SlamError(f"unknown preset {name!r}; presets: {', '.join(sorted(PRESETS))}")
-    cfg = SlamConfig(preset=name)
-    _apply(cfg, PRESETS[name], "")
+    cfg: SlamConfig = _apply(SlamConfig(preset=name), PRESETS[name], "")
     return cfg
 
 
@@ -154,8 +168,7 @@ def load_config(spec: str | None, default_preset: str = "stereo-vo") -> SlamConf
         raise SlamError(f"{path}: not valid YAML: {exc}") from exc
     if not isinstance(data, dict):
         raise SlamError(f"{path}: expected a mapping of config keys")
-    cfg = preset_config(str(data.pop("preset", default_preset)))
-    _apply(cfg, data, "")
+    cfg: SlamConfig = _apply(preset_config(str(data.pop("preset", default_preset))), data, "")
     return cfg
 
 

@@ -72,10 +72,18 @@ def skew(v: np.ndarray) -> np.ndarray:
 
 
 def so3_exp(omega: np.ndarray) -> np.ndarray:
-    """Rotation matrix for a rotation vector (rad)."""
-    from scipy.spatial.transform import Rotation
+    """Rotation matrix for one rotation vector (rad), by Rodrigues' formula.
 
-    return Rotation.from_rotvec(omega).as_matrix()
+    Written out because it runs per IMU sample in the front end's prior: ~10x faster than
+    building a scipy Rotation for a single vector.
+    """
+    w = np.asarray(omega, dtype=float)
+    theta2 = float(w @ w)
+    k = skew(w)
+    if theta2 < 1e-12:
+        return np.eye(3) + k + 0.5 * (k @ k)
+    theta = np.sqrt(theta2)
+    return np.eye(3) + (np.sin(theta) / theta) * k + ((1.0 - np.cos(theta)) / theta2) * (k @ k)
 
 
 def so3_log(rotation: np.ndarray) -> np.ndarray:

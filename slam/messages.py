@@ -108,3 +108,22 @@ class EndOfStream:
     """Sentinel passed down a stage's queue when its input is exhausted."""
 
     t_ns: int = 0
+
+
+@dataclass(frozen=True, eq=False)
+class ImuBatch:
+    """Consecutive IMU samples sent together to a back-end worker process (fewer pickles)."""
+
+    t_ns: np.ndarray  # (N,) int64
+    gyro_rad_s: np.ndarray  # (N, 3)
+    accel_m_s2: np.ndarray  # (N, 3)
+
+
+@dataclass(frozen=True, eq=False)
+class BackendOutput:
+    """What the back end returns per keyframe: the new estimate and what it cost."""
+
+    estimate: Estimate | None
+    keyframe_id: int
+    update_ms: float  # wall time of add_keyframe()
+    events: tuple[str, ...] = ()  # initialised, resets, IMU warnings since the last output

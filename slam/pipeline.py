@@ -26,10 +26,11 @@ from typing import Any
 import numpy as np
 
 from datasets.sequence import Sequence
+from slam.backend_stage import BackendStage
 from slam.config import SlamConfig, config_to_yaml
 from slam.frontend.tracker import FrontEnd
 from slam.imu_buffer import ImuBuffer
-from slam.messages import ImuSample, Keyframe, StereoFrame, TrackingResult
+from slam.messages import BackendOutput, ImuSample, Keyframe, StereoFrame, TrackingResult
 from slam.output import trajectory_from_poses, write_run_outputs
 from slam.stage import Latest, Stage, StageError
 from slam.trajectory import Trajectory
@@ -49,6 +50,8 @@ class Recorder:
         self.frontend_latency_ms: list[float] = []
         self.states: dict[str, int] = {}
         self.last_state = ""
+        self.keyframe_times: dict[int, int] = {}
+        self.events: list[tuple[int, str]] = []
 
     def add(self, res: TrackingResult) -> None:
         with self._lock:
@@ -59,6 +62,11 @@ class Recorder:
                 self.poses.append((res.t_ns, res.world_from_body))
                 if res.is_keyframe:
                     self.keyframes.append((res.t_ns, res.world_from_body))
+                    self.keyframe_times[res.keyframe_id] = res.t_ns
+
+    def event(self, t_ns: int, text: str) -> None:
+        with self._lock:
+            self.events.append((t_ns, text))
 
     def snapshot(self) -> tuple[Trajectory, Trajectory, list[float]]:
         with self._lock:
@@ -151,6 +159,32 @@ def run_slam(
     frontend = FrontEnd(seq.calibration, cfg.frontend, imu_buffer, latest_estimate.get)
     keyframe_consumers: list[Stage] = []
     imu_consumers: list[Stage] = []
+    backend: BackendStage | None = None
+    init_time: dict[str, float] = {}
+    if cfg.use_imu and seq.calibration.imu is not None and seq.num_imu:
+
+        def on_backend_output(out: BackendOutput) -> None:
+            est = out.estimate
+            t_ns = est.t_ns if est is not None else 0
+            for text in out.events:
+                recorder.event(t_ns, text)
+                if "initialised" in text and "t_s" not in init_time:
+                    init_time["t_s"] = (t_ns - seq.start_ns()) * 1e-9
+                if viewer is not None:
+                    viewer.put(("log", text), block=False)
+            if viewer is not None and est is not None:
+                viewer.put(est, block=False)
+
+        backend = BackendStage(
+            seq.calibration,
+            cfg.backend,
+            latest_estimate,
+            on_backend_output,
+            threaded,
+            cfg.backend_process,
+        )
+        keyframe_consumers.append(backend)
+        imu_consumers.append(backend)
     fe_stage = FrontendStage(
         frontend, recorder, keyframe_consumers, viewer, threaded, cfg.player.frame_queue_size
     )
@@ -180,7 +214,7 @@ def run_slam(
 
     def make_stats() -> dict[str, Any]:
         wall = time.perf_counter() - t_wall0
-        seq_s = (t_last_ns - (t_first_ns or t_last_ns)) * 1e-9
+        seq_s = (t_last_ns - (t_last_ns if t_first_ns is None else t_first_ns)) * 1e-9
         _, _, lat = recorder.snapshot()
         fe = frontend.stats
         return {
@@ -204,17 +238,36 @@ def run_slam(
                 **{f"stage_{s.name}": s.latency_stats() for s in stages},
             },
             "peak_rss_mb": peak_rss_mb(),
-            "events": [{"t_ns": t, "event": e} for t, e in fe.state_log],
+            "backend": None
+            if backend is None
+            else {
+                "mode": "process" if backend.use_process else "in-process",
+                "update": backend.update_stats(),
+                "initialised_after_s": init_time.get("t_s"),
+                **backend.final_stats,
+            },
+            "events": [{"t_ns": t, "event": e} for t, e in sorted(fe.state_log + recorder.events)],
             "sequence_warnings": list(seq.warnings),
             "interrupted": interrupted,
             "error": str(error) if error else None,
         }
 
+    def keyframe_trajectory(frontend_kfs: Trajectory) -> Trajectory:
+        """Back-end (optimised) keyframe poses where there are any, else the front end's."""
+        if backend is None or not backend.keyframe_poses:
+            return frontend_kfs
+        with recorder._lock:
+            times = dict(recorder.keyframe_times)
+        poses = sorted((times[k], p) for k, p in dict(backend.keyframe_poses).items() if k in times)
+        return trajectory_from_poses(poses)
+
     def flush() -> None:
         if out_dir is None:
             return
         traj, kfs, _ = recorder.snapshot()
-        write_run_outputs(out_dir, traj, kfs, make_stats(), config_to_yaml(cfg))
+        write_run_outputs(
+            out_dir, traj, keyframe_trajectory(kfs), make_stats(), config_to_yaml(cfg)
+        )
 
     try:
         for msg in seq.messages():
@@ -273,6 +326,7 @@ def run_slam(
             rec.disconnect()
         stats = make_stats()
         traj, kfs, _ = recorder.snapshot()
+        kfs = keyframe_trajectory(kfs)
         if out_dir is not None:
             write_run_outputs(out_dir, traj, kfs, stats, config_to_yaml(cfg))
     return RunResult(out_dir, traj, kfs, stats, interrupted, error, list(seq.warnings))

@@ -1,0 +1,219 @@
+"""The back end as a pipeline stage, in a thread or in a worker process.
+
+GTSAM's Python bindings hold the GIL for the whole of every call, so a back-end update running
+in a thread of the front end's process stalls the front end for its duration. With
+``backend_process`` (the default) the estimator runs in a worker process: this stage forwards
+IMU batches and keyframes over a multiprocessing queue, and a receiver thread publishes the
+estimates it sends back (``Latest``), without the front end ever waiting. Sequential mode calls
+the estimator directly (deterministic).
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import queue
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from slam.backend.config import BackendConfig
+from slam.calibration import Calibration
+from slam.messages import BackendOutput, EndOfStream, Estimate, ImuBatch, ImuSample, Keyframe
+from slam.stage import Latest, Stage
+
+log = logging.getLogger(__name__)
+
+
+class _Estimator:
+    """Wraps VioBackend: keeps every keyframe's latest pose and reports state changes."""
+
+    def __init__(self, calib: Calibration, cfg: BackendConfig):
+        from slam.backend.smoother import VioBackend
+
+        self.backend = VioBackend(calib, cfg)
+        self.was_initialized = False
+        self.resets_seen = 0
+
+    def add_imu(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> None:
+        self.backend.add_imu(ImuSample(int(t_ns), gyro, accel))
+
+    def add_keyframe(self, kf: Keyframe) -> BackendOutput:
+        t0 = time.perf_counter()
+        est = self.backend.add_keyframe(kf)
+        update_ms = (time.perf_counter() - t0) * 1e3
+        events: list[str] = []
+        if est is not None and est.initialized and not self.was_initialized:
+            self.was_initialized = True
+            events.append(f"back end initialised at keyframe {kf.keyframe_id}")
+        resets = self.backend.stats.resets
+        if resets > self.resets_seen:
+            events.append(f"back end reset ({resets} so far)")
+            self.resets_seen = resets
+        return BackendOutput(est, kf.keyframe_id, update_ms, tuple(events))
+
+    def stats(self) -> dict[str, Any]:
+        s = self.backend.stats
+        out: dict[str, Any] = {}
+        for key, value in vars(s).items():
+            if isinstance(value, (int, float, str)):
+                out[key] = value
+        out["failures"] = list(getattr(s, "failures", []))[:20]
+        imu_stats = getattr(self.backend.imu, "stats", None)
+        if imu_stats is not None:
+            out["imu"] = {k: v for k, v in vars(imu_stats).items() if isinstance(v, (int, float))}
+        return out
+
+
+def _worker(calib: Calibration, cfg: BackendConfig, inbox: Any, outbox: Any) -> None:
+    """The worker process: feed the estimator, send back outputs, then its final stats."""
+    estimator = _Estimator(calib, cfg)
+    while True:
+        msg = inbox.get()
+        if isinstance(msg, EndOfStream):
+            break
+        if isinstance(msg, ImuBatch):
+            for i in range(len(msg.t_ns)):
+                estimator.add_imu(int(msg.t_ns[i]), msg.gyro_rad_s[i], msg.accel_m_s2[i])
+        elif isinstance(msg, Keyframe):
+            try:
+                outbox.put(estimator.add_keyframe(msg))
+            except Exception as exc:  # reported by the stage with its name
+                outbox.put(RuntimeError(f"{type(exc).__name__}: {exc}"))
+                break
+    outbox.put(estimator.stats())
+
+
+class BackendStage(Stage):
+    """Feeds the visual-inertial estimator and publishes its estimates."""
+
+    def __init__(
+        self,
+        calib: Calibration,
+        cfg: BackendConfig,
+        latest: Latest,
+        on_output: Callable[[BackendOutput], None],
+        threaded: bool,
+        use_process: bool,
+    ):
+        super().__init__("backend", maxsize=4000, threaded=threaded)
+        self.latest = latest
+        self.on_output = on_output
+        self.use_process = use_process and threaded
+        self.update_ms: list[float] = []
+        self.keyframe_poses: dict[int, np.ndarray] = {}
+        self.final_stats: dict[str, Any] = {}
+        self._pending: list[ImuSample] = []
+        self._lock = threading.Lock()
+        if self.use_process:
+            ctx = mp.get_context("spawn")
+            self._inbox: Any = ctx.Queue()
+            self._outbox: Any = ctx.Queue()
+            self._proc = ctx.Process(
+                target=_worker,
+                args=(calib, cfg, self._inbox, self._outbox),
+                daemon=True,
+                name="slam-backend",
+            )
+            self._proc.start()
+            self._receiver = threading.Thread(target=self._receive, name="backend-rx", daemon=True)
+            self._receiver.start()
+        else:
+            self._estimator = _Estimator(calib, cfg)
+
+    def _publish(self, out: BackendOutput) -> None:
+        with self._lock:
+            self.update_ms.append(out.update_ms)
+            est = out.estimate
+            if est is not None and est.initialized:
+                for kid, pose in est.keyframe_poses.items():
+                    self.keyframe_poses[kid] = pose
+        if out.estimate is not None:
+            self.latest.set(out.estimate)
+        self.on_output(out)
+
+    def _receive(self) -> None:
+        while True:
+            try:
+                item = self._outbox.get(timeout=0.5)
+            except queue.Empty:
+                if not self._proc.is_alive():
+                    if self.error is None and not self.final_stats:
+                        self._fail(RuntimeError("the back-end worker process died"))
+                    return
+                continue
+            if isinstance(item, BackendOutput):
+                self._publish(item)
+            elif isinstance(item, Exception):
+                self._fail(item)
+            elif isinstance(item, dict):
+                self.final_stats = item
+                return
+
+    def _fail(self, exc: BaseException) -> None:
+        from slam.stage import StageError
+
+        self.error = StageError(self.name, exc, "")
+        log.error("%s", self.error)
+
+    def _flush_imu(self) -> None:
+        if not self._pending:
+            return
+        batch = ImuBatch(
+            np.array([s.t_ns for s in self._pending], dtype=np.int64),
+            np.array([s.gyro_rad_s for s in self._pending]),
+            np.array([s.accel_m_s2 for s in self._pending]),
+        )
+        self._pending = []
+        self._inbox.put(batch)
+
+    def process(self, msg: Any) -> None:
+        if isinstance(msg, ImuSample):
+            if self.use_process:
+                self._pending.append(msg)
+                if len(self._pending) >= 50:
+                    self._flush_imu()
+            else:
+                self._estimator.add_imu(msg.t_ns, msg.gyro_rad_s, msg.accel_m_s2)
+        elif isinstance(msg, Keyframe):
+            if self.use_process:
+                self._flush_imu()
+                self._inbox.put(msg)
+            else:
+                self._publish(self._estimator.add_keyframe(msg))
+
+    def on_end(self) -> None:
+        if self.use_process:
+            self._flush_imu()
+            self._inbox.put(EndOfStream())
+            self._receiver.join(timeout=120)
+            self._proc.join(timeout=10)
+            if self._proc.is_alive():
+                self._proc.terminate()
+        else:
+            self.final_stats = self._estimator.stats()
+
+    def abort(self) -> None:
+        super().abort()
+        if self.use_process and self._proc.is_alive():
+            self._proc.terminate()
+
+    def estimate(self) -> Estimate | None:
+        value: Estimate | None = self.latest.get()
+        return value
+
+    def update_stats(self) -> dict[str, float]:
+        with self._lock:
+            a = np.asarray(self.update_ms)
+        if not len(a):
+            return {"count": 0}
+        return {
+            "count": len(a),
+            "p50_ms": float(np.percentile(a, 50)),
+            "p90_ms": float(np.percentile(a, 90)),
+            "p99_ms": float(np.percentile(a, 99)),
+            "max_ms": float(a.max()),
+        }
