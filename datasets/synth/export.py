@@ -1,0 +1,155 @@
+"""Write a synthetic sequence's extras: ground-truth depth images and the scene mesh (PLY).
+
+The MCAP itself is written by :func:`datasets.mcap_io.write_sequence_mcap`; this module adds
+what only the generator knows. All outputs are written atomically (temp file + os.replace).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from datasets.synth.generator import SyntheticSequence
+
+DEPTH_SCALE_M = 0.001  # one unit of the 16-bit depth PNGs, metres (TUM/7-Scenes convention)
+
+
+def _atomic_write_bytes(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def write_ply_mesh(path: str | os.PathLike[str], vertices: np.ndarray, faces: np.ndarray) -> None:
+    """A binary little-endian PLY with float32 x,y,z vertices and int32 triangles."""
+    v = np.ascontiguousarray(vertices, dtype="<f4")
+    f = np.asarray(faces, dtype="<i4")
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment pyvislam synthetic scene (world frame)\n"
+        f"element vertex {len(v)}\nproperty float x\nproperty float y\nproperty float z\n"
+        f"element face {len(f)}\nproperty list uchar int vertex_indices\nend_header\n"
+    ).encode("ascii")
+    tri = np.zeros(len(f), dtype=[("n", "u1"), ("idx", "<i4", (3,))])
+    tri["n"] = 3
+    tri["idx"] = f
+    _atomic_write_bytes(Path(path), header + v.tobytes() + tri.tobytes())
+
+
+def read_ply_mesh(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Read back a PLY written by :func:`write_ply_mesh` (vertices (V, 3), triangles (T, 3))."""
+    data = Path(path).read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    header = data[:end].decode("ascii").splitlines()
+    n_v = int(next(ln for ln in header if ln.startswith("element vertex")).split()[-1])
+    n_f = int(next(ln for ln in header if ln.startswith("element face")).split()[-1])
+    v = np.frombuffer(data, dtype="<f4", count=3 * n_v, offset=end).reshape(n_v, 3)
+    tri = np.frombuffer(
+        data, dtype=[("n", "u1"), ("idx", "<i4", (3,))], count=n_f, offset=end + 12 * n_v
+    )
+    return v.astype(np.float64), tri["idx"].astype(np.int64)
+
+
+def write_depth_images(
+    seq: SyntheticSequence, out_dir: str | os.PathLike[str], cam: int = 0, progress: bool = True
+) -> int:
+    """Ground-truth depth of every frame as ``<t_ns>.png`` (uint16, millimetres, 0 = none) plus
+    ``depth.json`` (scale, camera, intrinsics). Returns the number of images written."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    camera = seq.calibration.cameras[cam]
+    meta = {
+        "depth_scale_m": DEPTH_SCALE_M,
+        "camera": camera.to_dict(),
+        "note": "z in the camera frame, distorted pixel grid of the camera; 0 = no depth",
+    }
+    _atomic_write_bytes(out / "depth.json", json.dumps(meta, indent=2).encode())
+    times = seq.frame_times_ns()
+    for i in tqdm(range(len(times)), desc=f"depth {out.name}", unit="frame", disable=not progress):
+        depth_m = seq.depth(i, cam)
+        mm = np.clip(np.round(depth_m / DEPTH_SCALE_M), 0, 65535).astype(np.uint16)
+        ok, buf = cv2.imencode(".png", mm)
+        if not ok:
+            raise OSError(f"cannot encode depth image {i}")
+        _atomic_write_bytes(out / f"{int(times[i])}.png", buf.tobytes())
+    return len(times)
+
+
+@dataclass(frozen=True)
+class SynthResult:
+    """What ``slam synth`` wrote."""
+
+    mcap_path: Path
+    num_frames: int
+    num_imu: int
+    duration_s: float
+    path_length_m: float
+    depth_images: int = 0
+    mesh_path: Path | None = None
+
+
+def run_synth(
+    out_mcap: str | os.PathLike[str],
+    *,
+    profile: str = "figure8",
+    duration_s: float | None = None,
+    seed: int = 0,
+    scene_seed: int = 0,
+    trajectory_file: str | None = None,
+    imu_csv: str | None = None,
+    imu_noise: bool = True,
+    blackout: tuple[float, float] | None = None,
+    moving_start: bool = False,
+    aliasing: bool = False,
+    pixel_noise_std: float = 0.0,
+    depth_dir: str | os.PathLike[str] | None = None,
+    mesh_path: str | os.PathLike[str] | None = None,
+    progress: bool = True,
+) -> SynthResult:
+    """Make a synthetic sequence and write it as MCAP (+ optional depth PNGs and PLY mesh)."""
+    from datasets.mcap_io import write_sequence_mcap
+    from datasets.synth.generator import make_synthetic_sequence
+
+    seq = make_synthetic_sequence(
+        profile,
+        duration_s,
+        seed,
+        imu_noise=imu_noise,
+        blackout=blackout,
+        moving_start=moving_start,
+        aliasing=aliasing,
+        pixel_noise_std=pixel_noise_std,
+        scene_seed=scene_seed,
+        trajectory_file=trajectory_file,
+        imu_csv=imu_csv,
+    )
+    out = Path(out_mcap)
+    write_sequence_mcap(seq, out, progress=progress)
+    n_depth = write_depth_images(seq, depth_dir, progress=progress) if depth_dir else 0
+    if mesh_path is not None:
+        verts, tris = seq.scene_mesh()
+        write_ply_mesh(mesh_path, verts, tris)
+    gt = seq.ground_truth
+    assert gt is not None
+    return SynthResult(
+        mcap_path=out,
+        num_frames=seq.num_frames,
+        num_imu=seq.num_imu,
+        duration_s=seq.duration_ns * 1e-9,
+        path_length_m=gt.path_length_m(),
+        depth_images=n_depth,
+        mesh_path=Path(mesh_path) if mesh_path is not None else None,
+    )
