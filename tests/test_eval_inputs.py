@@ -147,3 +147,16 @@ def test_bag_topics(shared_data: Path) -> None:
         ref = evo_fi.read_bag_trajectory(reader, "/odom")
     np.testing.assert_allclose(odom.seconds, ref.timestamps, rtol=0, atol=0)
     np.testing.assert_allclose(odom.trajectory.positions_m, ref.positions_xyz, rtol=0, atol=0)
+
+
+def test_seconds_parsing_is_exact() -> None:
+    tokens = ["12.5", "-0.5", "1403715273.262142976", "7", "1.403715572012143135e+09", "3."]
+    t_ns = evio._times_ns_from_seconds(Path("x"), tokens, list(range(1, 7)))
+    assert t_ns.tolist() == [
+        12_500_000_000,
+        -500_000_000,
+        1_403_715_273_262_142_976,
+        7_000_000_000,
+        round(1.403715572012143135e09 * 1e9),
+        3_000_000_000,
+    ]

@@ -245,3 +245,27 @@ def run_table(args: argparse.Namespace) -> int:
     else:
         print(text, end="")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run `slam eval` alone (``python -m tools.cmd_eval ape REF EST``), without importing the
+    other command modules; errors are handled as in ``tools.cli``."""
+    import logging
+    import sys
+
+    from slam.errors import SlamError
+
+    parser = argparse.ArgumentParser(prog="slam")
+    sub = parser.add_subparsers(dest="command")
+    register(sub)
+    args = parser.parse_args(["eval", *(sys.argv[1:] if argv is None else argv)])
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args.func(args) or 0)
+    except SlamError as exc:
+        print(f"slam eval: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

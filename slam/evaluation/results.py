@@ -6,10 +6,7 @@
 
 from __future__ import annotations
 
-import json
 import os
-import tempfile
-import zipfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -67,6 +64,9 @@ class EvalResult:
 
 def write_json(path: str | Path, results: list[EvalResult]) -> None:
     """Write one result (a JSON object) or several (a list), atomically."""
+    import json
+    import tempfile
+
     payload: Any = results[0].to_dict() if len(results) == 1 else [r.to_dict() for r in results]
     path = Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -91,6 +91,9 @@ class TableRow:
 
 def load_rows(path: str | Path) -> list[TableRow]:
     """Rows from our JSON result file or an evo result zip."""
+    import json
+    import zipfile
+
     p = Path(path)
     if not p.is_file():
         raise InputError(f"{p}: no such result file")
