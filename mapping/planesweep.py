@@ -58,6 +58,11 @@ class SweepConfig:
     """Drop pixels whose best mean absolute difference is above this (grey levels, SAD only)."""
     min_texture: float = 3.0
     """Drop pixels whose window standard deviation is below this (grey levels)."""
+    speckle_max_px: int = 60
+    """Remove connected blobs of valid pixels up to this size whose plane index differs from
+    their surroundings by more than ``speckle_max_diff`` (cv2.filterSpeckles); 0 disables."""
+    speckle_max_diff: float = 1.5
+    """Plane-index step that separates speckle blobs from their neighbours."""
     threads: int = 1
     """Worker threads over plane chunks (OpenCV releases the GIL); results do not depend on it."""
 
@@ -291,6 +296,11 @@ def plane_sweep(
     peak_ratio = (c2 / np.maximum(c1, 1e-3)).astype(np.float32)
     textured = ref.std >= cfg.min_texture
     keep = textured & good_score & (peak_ratio >= cfg.min_peak_ratio) & ok
+    if cfg.speckle_max_px > 0:
+        # Plane index (1-based, x16 fixed point) as a disparity image for filterSpeckles.
+        disp = np.where(keep, np.round((best_i + offset + 1.0) * 16.0), 0).astype(np.int16)
+        cv2.filterSpeckles(disp, 0, cfg.speckle_max_px, int(round(cfg.speckle_max_diff * 16)))
+        keep &= disp > 0
     depth = np.where(keep, raw_depth, 0.0).astype(np.float32)
     return DepthResult(depth, raw_depth, best, peak_ratio, textured)
 

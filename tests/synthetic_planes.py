@@ -84,7 +84,8 @@ class PlaneScene:
             denom = d @ n
             with np.errstate(divide="ignore", invalid="ignore"):
                 t = ((rect.origin - o) @ n) / denom
-            p = o + d * t[..., None]
+            with np.errstate(invalid="ignore"):
+                p = o + d * t[..., None]
             s = (p - rect.origin) @ rect.u
             q = (p - rect.origin) @ rect.v
             hit = (t > 1e-3) & (s >= 0) & (s <= rect.size_u) & (q >= 0) & (q <= rect.size_v)

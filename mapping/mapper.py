@@ -1,0 +1,290 @@
+"""The dense mapper's core: keyframes with poses in, depth per keyframe, TSDF fusion, mesh out.
+
+A plain class, so the lead can wrap it in a pipeline stage (ideally in a worker process: the
+constructor arguments and every input are picklable: numpy arrays and frozen dataclasses).
+
+Per keyframe (:meth:`DenseMapper.add_keyframe`):
+
+1. undistort the images (calibration distortion, ``cv2.initUndistortRectifyMap``);
+2. depth: the sensor depth when given (RGB-D), else a plane sweep with the stereo partner
+   (``cam1_from_cam0``) and the nearest earlier keyframes by pose (baseline and viewing-angle
+   limits) as source views;
+3. filter against the previous keyframe's depth map (multi-view consistency): pixels that can
+   be checked and disagree are dropped;
+4. integrate into the sparse TSDF; the depth map is kept (float16) for re-integration.
+
+Loop correction (:meth:`DenseMapper.update_poses`): keyframes whose pose moved by more than a
+threshold are **re-integrated**: de-integrated with the old pose, then integrated with the new
+one (exact for the TSDF and weights because weights are not clamped; colours are approximate).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mapping.mesh import TriangleMesh, extract_mesh
+from mapping.planesweep import (
+    SourceView,
+    SweepConfig,
+    Undistorter,
+    depth_consistency,
+    plane_sweep,
+)
+from mapping.tsdf import TsdfConfig, TsdfVolume
+from slam.calibration import Calibration
+from slam.geometry import invert_transform, so3_log
+
+
+@dataclass(frozen=True)
+class MapperConfig:
+    """Parameters of :class:`DenseMapper`."""
+
+    tsdf: TsdfConfig = field(default_factory=lambda: TsdfConfig(voxel_m=0.02, max_depth_m=4.0))
+    """Fusion volume."""
+    sweep: SweepConfig = field(
+        default_factory=lambda: SweepConfig(depth_min_m=0.4, depth_max_m=8.0)
+    )
+    """Plane sweep per keyframe."""
+    num_keyframe_sources: int = 1
+    """Earlier keyframes used as extra source views (besides the stereo partner)."""
+    min_baseline_m: float = 0.04
+    """A keyframe closer than this to the reference adds little depth information."""
+    max_baseline_m: float = 0.6
+    """A keyframe farther than this overlaps too little."""
+    max_view_angle_deg: float = 30.0
+    """Largest angle between optical axes of a reference and a source keyframe."""
+    history: int = 12
+    """How many recent keyframes are kept as source candidates (images are kept for these)."""
+    consistency_rel_tol: float = 0.02
+    """Drop pixels that disagree with the previous keyframe's depth by more than this (relative);
+    0 disables the check."""
+    reintegrate_translation_m: float = 0.01
+    """Re-integrate a keyframe after a pose update that moves it more than this..."""
+    reintegrate_rotation_deg: float = 0.5
+    """...or rotates it more than this."""
+    mesh_min_weight: float = 1.0
+    """Mesh only where every cube corner has weight above this (1.0: seen by 2+ keyframes),
+    which removes surfaces that a single wrong depth map created."""
+    keep_color: bool = False
+    """Keep every keyframe's colour image so re-integration also moves colour (1 MB per 752x480
+    keyframe); without it re-integration moves geometry only. Depth is always kept (float16,
+    0.7 MB per 752x480 keyframe)."""
+
+
+@dataclass(frozen=True)
+class StereoRig:
+    """What the mapper needs to know of the cameras (undistorted pinholes after undistortion)."""
+
+    undistort_left: Undistorter
+    undistort_right: Undistorter | None
+    K_left: np.ndarray
+    K_right: np.ndarray | None
+    cam1_from_cam0: np.ndarray | None
+
+    @staticmethod
+    def from_calibration(calibration: Calibration) -> StereoRig:
+        left = Undistorter(calibration.cam0.intrinsics)
+        if calibration.is_stereo:
+            right = Undistorter(calibration.cameras[1].intrinsics)
+            return StereoRig(left, right, left.K, right.K, calibration.cam1_from_cam0())
+        return StereoRig(left, None, left.K, None, None)
+
+
+@dataclass(frozen=True)
+class KeyframeReport:
+    """What one :meth:`DenseMapper.add_keyframe` did (for logging and lag reports)."""
+
+    t_ns: int
+    num_sources: int
+    valid_fraction: float
+    depth_ms: float
+    fusion_ms: float
+    blocks: int
+
+
+@dataclass
+class _StoredKeyframe:
+    t_ns: int
+    world_from_cam0: np.ndarray
+    K: np.ndarray
+    depth_m: np.ndarray  # float16, 0 = invalid
+    color: np.ndarray | None  # uint8 RGB, kept only for re-integration colour
+    gray: np.ndarray | None  # uint8, kept for the recent history only
+
+
+def _to_gray_u8(image: np.ndarray) -> np.ndarray:
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = (
+            img[..., :3].astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
+        ).round()
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def _to_rgb_u8(image: np.ndarray) -> np.ndarray:
+    img = np.asarray(image)
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=2)
+    return img[..., :3].astype(np.uint8)
+
+
+class DenseMapper:
+    """Plane sweep (or sensor depth) + TSDF fusion over keyframes; see the module docstring."""
+
+    def __init__(self, config: MapperConfig | None = None, rig: StereoRig | None = None) -> None:
+        self.config = config or MapperConfig()
+        self.rig = rig
+        self.volume = TsdfVolume(self.config.tsdf)
+        self._keyframes: dict[int, _StoredKeyframe] = {}
+        self._order: list[int] = []
+        self.reports: list[KeyframeReport] = []
+
+    @staticmethod
+    def from_calibration(
+        calibration: Calibration, config: MapperConfig | None = None
+    ) -> DenseMapper:
+        return DenseMapper(config, StereoRig.from_calibration(calibration))
+
+    @property
+    def num_keyframes(self) -> int:
+        return len(self._keyframes)
+
+    # --- keyframes -----------------------------------------------------------------------------
+    def _select_sources(self, world_from_cam0: np.ndarray) -> list[_StoredKeyframe]:
+        cfg = self.config
+        axis = world_from_cam0[:3, 2]
+        centre = world_from_cam0[:3, 3]
+        scored = []
+        for t in self._order[-cfg.history :]:
+            kf = self._keyframes[t]
+            if kf.gray is None:
+                continue
+            baseline = float(np.linalg.norm(kf.world_from_cam0[:3, 3] - centre))
+            cos_angle = float(np.clip(axis @ kf.world_from_cam0[:3, 2], -1.0, 1.0))
+            angle = np.degrees(np.arccos(cos_angle))
+            if (
+                cfg.min_baseline_m <= baseline <= cfg.max_baseline_m
+                and angle <= cfg.max_view_angle_deg
+            ):
+                scored.append((baseline, kf))
+        scored.sort(key=lambda x: x[0])
+        return [kf for _, kf in scored[: cfg.num_keyframe_sources]]
+
+    def add_keyframe(
+        self,
+        t_ns: int,
+        image_left: np.ndarray,
+        image_right: np.ndarray | None,
+        world_from_cam0: np.ndarray,
+        K: np.ndarray | None = None,
+        depth_m: np.ndarray | None = None,
+        color_rgb: np.ndarray | None = None,
+    ) -> KeyframeReport:
+        """Add one keyframe and fuse it.
+
+        ``image_left``/``image_right``: raw cam0/cam1 images (undistorted here when the mapper
+        has a rig). ``K``: the pinhole of ``image_left`` when there is no rig (already
+        undistorted images). ``depth_m``: sensor depth registered to the left image (skips the
+        sweep). ``color_rgb``: colour for the mesh (defaults to the left image).
+        """
+        cfg = self.config
+        rig = self.rig
+        t0 = time.perf_counter()
+        left = rig.undistort_left(image_left) if rig else image_left
+        k_left = rig.K_left if rig else K
+        if k_left is None:
+            raise ValueError("add_keyframe needs K when the mapper has no calibration rig")
+        gray = _to_gray_u8(left)
+        color = _to_rgb_u8(color_rgb if color_rgb is not None else left)
+        n_sources = 0
+        if depth_m is None:
+            sources: list[SourceView] = []
+            if image_right is not None and rig is not None and rig.undistort_right is not None:
+                assert rig.K_right is not None and rig.cam1_from_cam0 is not None
+                right = _to_gray_u8(rig.undistort_right(image_right))
+                sources.append(SourceView(right, rig.K_right, rig.cam1_from_cam0))
+            for kf in self._select_sources(world_from_cam0):
+                assert kf.gray is not None
+                src_from_ref = invert_transform(kf.world_from_cam0) @ world_from_cam0
+                sources.append(SourceView(kf.gray, kf.K, src_from_ref))
+            n_sources = len(sources)
+            if sources:
+                depth = plane_sweep(gray, k_left, sources, cfg.sweep).depth_m
+            else:
+                depth = np.zeros(gray.shape, np.float32)
+            if cfg.consistency_rel_tol > 0 and self._order:
+                prev = self._keyframes[self._order[-1]]
+                prev_from_ref = invert_transform(prev.world_from_cam0) @ world_from_cam0
+                agree, checked = depth_consistency(
+                    depth,
+                    k_left,
+                    prev.depth_m.astype(np.float32),
+                    prev.K,
+                    prev_from_ref,
+                    cfg.consistency_rel_tol,
+                )
+                depth = np.where(checked & ~agree, 0.0, depth).astype(np.float32)
+        else:
+            depth = np.asarray(depth_m, np.float32)
+        t1 = time.perf_counter()
+        self.volume.integrate(depth, k_left, world_from_cam0, color)
+        t2 = time.perf_counter()
+        self._keyframes[t_ns] = _StoredKeyframe(
+            t_ns,
+            np.array(world_from_cam0, float),
+            np.array(k_left, float),
+            depth.astype(np.float16),
+            color if cfg.keep_color else None,
+            gray,
+        )
+        self._order.append(t_ns)
+        if len(self._order) > cfg.history:  # images of old keyframes are no longer needed
+            self._keyframes[self._order[-cfg.history - 1]].gray = None
+        report = KeyframeReport(
+            t_ns,
+            n_sources,
+            float((depth > 0).mean()),
+            1e3 * (t1 - t0),
+            1e3 * (t2 - t1),
+            self.volume.num_blocks,
+        )
+        self.reports.append(report)
+        return report
+
+    # --- loop correction -----------------------------------------------------------------------
+    def update_poses(self, world_from_cam0_by_t: Mapping[int, np.ndarray]) -> int:
+        """Apply corrected keyframe poses: re-integrate (de-integrate with the old pose, integrate
+        with the new) every keyframe that moved more than the thresholds. Returns how many."""
+        cfg = self.config
+        moved = 0
+        for t_ns, new_pose in world_from_cam0_by_t.items():
+            kf = self._keyframes.get(int(t_ns))
+            if kf is None:
+                continue
+            new_pose = np.asarray(new_pose, float)
+            delta = invert_transform(kf.world_from_cam0) @ new_pose
+            dt = float(np.linalg.norm(delta[:3, 3]))
+            dr = float(np.degrees(np.linalg.norm(so3_log(delta[:3, :3]))))
+            if dt <= cfg.reintegrate_translation_m and dr <= cfg.reintegrate_rotation_deg:
+                kf.world_from_cam0 = new_pose
+                continue
+            depth = kf.depth_m.astype(np.float32)
+            self.volume.deintegrate(depth, kf.K, kf.world_from_cam0, kf.color)
+            self.volume.integrate(depth, kf.K, new_pose, kf.color)
+            kf.world_from_cam0 = new_pose
+            moved += 1
+        return moved
+
+    # --- outputs -------------------------------------------------------------------------------
+    def mesh(self, min_weight: float | None = None) -> TriangleMesh:
+        """Marching cubes over the fused volume (``min_weight``: see MapperConfig)."""
+        mw = self.config.mesh_min_weight if min_weight is None else min_weight
+        return extract_mesh(self.volume, min_weight=mw)
+
+    def keyframe_depth(self, t_ns: int) -> np.ndarray:
+        """The fused depth map (float32 m, 0 = invalid) of a keyframe."""
+        return self._keyframes[t_ns].depth_m.astype(np.float32)
