@@ -170,3 +170,40 @@ def test_bad_inputs_raise_input_error(tmp_path) -> None:
     bad.write_text("1 2 3\n")
     with pytest.raises(InputError):
         make_synthetic_sequence(trajectory_file=str(bad))
+
+
+def _predict(seq, index_from: int, cam_from: int, index_to: int, cam_to: int, px: np.ndarray):
+    """Where integer pixels of one image land in another, from true depth and poses."""
+    from datasets.synth.render import pixel_rays
+
+    rays = pixel_rays(seq.calibration.cameras[cam_from].intrinsics)
+    z = seq.depth(index_from, cam_from)[px[:, 1], px[:, 0]]
+    p_cam = np.concatenate([rays[px[:, 1], px[:, 0]], np.ones((len(px), 1))], 1) * z[:, None]
+    a = seq.world_from_cam(index_from, cam_from)
+    b = seq.world_from_cam(index_to, cam_to)
+    p_world = p_cam @ a[:3, :3].T + a[:3, 3]
+    p_to = (p_world - b[:3, 3]) @ b[:3, :3]
+    return seq.calibration.cameras[cam_to].intrinsics.project(p_to)
+
+
+def test_klt_flow_and_stereo_match_ground_truth(seq) -> None:
+    """End to end: features tracked by KLT (temporal and left->right) land where the true depth,
+    poses and calibration predict, to a small fraction of a pixel."""
+    import cv2
+
+    i = 70
+    f0, f1 = seq.frame(i), seq.frame(i + 1)
+    corners = cv2.goodFeaturesToTrack(f0.left, 300, 0.01, 12)[:, 0]
+    px = np.round(corners).astype(int)
+    px = px[(px[:, 0] > 20) & (px[:, 0] < 731) & (px[:, 1] > 20) & (px[:, 1] < 459)]
+    start = px.astype(np.float32).reshape(-1, 1, 2)
+    for target, cam_to, index_to in ((f1.left, 0, i + 1), (f0.right, 1, i)):
+        tracked, status, _ = cv2.calcOpticalFlowPyrLK(
+            f0.left, target, start, None, winSize=(21, 21), maxLevel=3
+        )
+        ok = status[:, 0] == 1
+        expected = _predict(seq, i, 0, index_to, cam_to, px)
+        err = np.linalg.norm(tracked[:, 0] - expected, axis=1)[ok]
+        inside = (expected[ok, 0] > 10) & (expected[ok, 0] < 742)
+        assert ok.mean() > 0.8
+        assert np.median(err[inside]) < 0.1, (cam_to, np.median(err[inside]))

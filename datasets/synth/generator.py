@@ -19,6 +19,7 @@ from datasets.synth.render import StereoRenderer
 from datasets.synth.scene import Scene, build_scene, room_around_path
 from datasets.synth.trajectories import (
     Motion,
+    MotionSamples,
     ProfileMotion,
     SplineMotion,
     make_profile,
@@ -124,6 +125,11 @@ class SyntheticSequence(Sequence):
         self._imu = imu
         self._renderer: StereoRenderer | None = None
 
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_renderer"] = None  # rebuilt on demand (pixel rays), keeps pickles small
+        return state
+
     # --- Sequence interface ------------------------------------------------------------------
     def frame_times_ns(self) -> np.ndarray:
         return self._frame_times_ns
@@ -166,6 +172,13 @@ class SyntheticSequence(Sequence):
         """Exact 4x4 world_from_cam of frame ``index``."""
         t_ns = int(self._frame_times_ns[index])
         return self.world_from_body_at(t_ns) @ self.calibration.cameras[cam].body_from_cam
+
+    def ground_truth_state(self) -> MotionSamples:
+        """Full true state at the ground-truth times: positions, world velocities and
+        accelerations, rotations, body angular velocities (the true IMU biases are in
+        ``imu_gyro_bias_rad_s`` / ``imu_accel_bias_m_s2``)."""
+        assert self.ground_truth is not None
+        return self.motion.sample(self.motion_time_s(self.ground_truth.t_ns))
 
     def depth(self, index: int, cam: int = 0) -> np.ndarray:
         """Ground-truth depth (H, W) float32: z in the camera frame, metres (every pixel hits
