@@ -59,6 +59,11 @@ class BackendConfig:
     """Projection measurement standard deviation (undistorted pixels)."""
     huber_k: float = 1.345
     """Huber threshold in standard deviations for visual factors."""
+    landmark_model: str = "smart"
+    """"projection": landmarks are variables with Huber projection factors per camera;
+    "smart": one SmartProjectionRigFactor per landmark (stereo rig, landmark eliminated,
+    rebuilt with each new observation; outliers by GTSAM's dynamic rejection threshold).
+    Measured on the simulated world: same ATE, about half the CPU per keyframe."""
     right_camera_factors: bool = True
     """Add a projection factor for the right camera too (else it only helps triangulation)."""
     min_keyframes_per_landmark: int = 2

@@ -146,6 +146,21 @@ class VioBackend:
             gtsam.noiseModel.mEstimator.Huber.Create(self.config.huber_k),
             gtsam.noiseModel.Isotropic.Sigma(2, self.config.pixel_sigma_px),
         )
+        if self.config.landmark_model not in ("projection", "smart"):
+            raise SlamError(
+                f"unknown landmark_model {self.config.landmark_model!r}; use projection or smart"
+            )
+        self._smart_params = gtsam.SmartProjectionParams()
+        self._smart_params.setLinearizationMode(gtsam.LinearizationMode.HESSIAN)
+        self._smart_params.setDegeneracyMode(gtsam.DegeneracyMode.ZERO_ON_DEGENERACY)
+        self._smart_params.setDynamicOutlierRejectionThreshold(self.config.outlier_reprojection_px)
+        self._smart_params.setLandmarkDistanceThreshold(self.config.max_depth_m)
+        self._rig = gtsam.CameraSetPinholePoseCal3_S2()
+        for pose_bc, cal in zip(self._body_p_cam, self._cal):
+            self._rig.push_back(gtsam.PinholePoseCal3_S2(pose_bc, cal))
+        self._smart_noise = gtsam.noiseModel.Isotropic.Sigma(2, self.config.pixel_sigma_px)
+        # landmark id -> (factor index in the smoother, the smart factor) in "smart" mode
+        self._smart: dict[int, tuple[int, Any]] = {}
         self._initialized = False
         self._world_from_vo = np.eye(4)
         self._init_keyframes: list[Keyframe] = []
@@ -392,6 +407,7 @@ class VioBackend:
         self._states = [_State(k, keyframe_id, t_ns, pose_vo)]
         self._landmarks = set()
         self._tracks = {}
+        self._smart = {}
         self._last_good = _GoodState(
             k, keyframe_id, t_ns, pose, np.asarray(velocity, float), bias, pose_vo
         )
@@ -474,12 +490,16 @@ class VioBackend:
 
         # visual factors
         window_ks = {s.k for s in self._states} | {k}
-        poses = {s.k: vals.atPose3(X(s.k)).matrix() for s in self._states}
-        poses[k] = pose_guess.matrix()
+        poses = {s.k: self._cams_from_world(vals.atPose3(X(s.k)).matrix()) for s in self._states}
+        poses[k] = self._cams_from_world(pose_guess.matrix())
         factor_lids: list[int] = []  # landmark id of each new visual factor, -1 for others
         factor_lids += [-1] * graph.size()
         new_landmark_ids: set[int] = set()
-        if with_visual:
+        remove: list[int] = []
+        smart_new: dict[int, Any] = {}
+        if with_visual and cfg.landmark_model == "smart":
+            remove = self._smart_visual(kf, k, graph, poses, window_ks, factor_lids, smart_new)
+        elif with_visual:
             gate_px = 2.0 * cfg.outlier_reprojection_px
             for lid, uv_l, uv_r in _observations(kf, cfg.max_landmarks_per_keyframe):
                 if lid in self._culled:
@@ -513,7 +533,7 @@ class VioBackend:
                 self._tracks.pop(lid, None)
         else:
             self.stats.keyframes_without_visual += 1
-        self._smoother_update(graph, new_values, stamps)
+        self._smoother_update(graph, new_values, stamps, remove)
         new_indices = list(self._live_smoother().getISAM2Result().getNewFactorsIndices())
         for _ in range(cfg.extra_iterations):
             self._smoother_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), {})
@@ -535,7 +555,14 @@ class VioBackend:
                 self._tracks[lid] = tr
             else:
                 del self._tracks[lid]
-        if with_visual:
+        if smart_new:
+            for lid, idx in zip(factor_lids, new_indices):
+                if lid >= 0:
+                    self._smart[lid] = (idx, smart_new[lid])
+            self._smart = {
+                lid: v for lid, v in self._smart.items() if lid in self._tracks or lid in smart_new
+            }
+        elif with_visual and cfg.landmark_model == "projection":
             self._cull_outliers(values, k, factor_lids, new_indices, new_landmark_ids)
         self._last_good = _GoodState(
             k,
@@ -548,6 +575,66 @@ class VioBackend:
             kf,
         )
         self.imu.trim(self._states[0].t_ns - int(1e9))
+
+    def _smart_visual(
+        self,
+        kf: Keyframe,
+        k: int,
+        graph: gtsam.NonlinearFactorGraph,
+        poses: dict[int, list[np.ndarray]],
+        window_ks: set[int],
+        factor_lids: list[int],
+        smart_new: dict[int, Any],
+    ) -> list[int]:
+        """Smart stereo-rig factors: one per landmark, rebuilt with every new observation (the
+        previous one is removed). Returns the factor indices to remove."""
+        cfg = self.config
+        gate_px = 2.0 * cfg.outlier_reprojection_px
+        existing = self._live_smoother().getFactors()
+        remove: list[int] = []
+        for lid, uv_l, uv_r in _observations(kf, cfg.max_landmarks_per_keyframe):
+            if lid in self._culled:
+                continue
+            prev = self._smart.get(lid)
+            track = [o for o in self._tracks.get(lid, []) if o.k in window_ks]
+            if prev is not None:
+                if not existing.exists(prev[0]):
+                    # its factor was marginalised (its information is in the marginal prior):
+                    # start a fresh track so no observation is counted twice
+                    del self._smart[lid]
+                    prev = None
+                    track = []
+                else:
+                    res = prev[1].point()
+                    if res.valid() and not self._gate_ok(poses[k], res.get(), uv_l, uv_r, gate_px):
+                        self.stats.observations_gated += 1
+                        continue
+            track.append(_Obs(k, uv_l, uv_r))
+            self._tracks[lid] = track
+            if len({o.k for o in track}) < cfg.min_keyframes_per_landmark:
+                continue
+            factor = gtsam.SmartProjectionRigFactorPinholePoseCal3_S2(
+                self._smart_noise, self._rig, self._smart_params
+            )
+            meas, keys, cam_ids = [], [], []
+            for o in track:
+                key = X(o.k)
+                meas.append(o.uv_left)
+                keys.append(key)
+                cam_ids.append(0)
+                if o.uv_right is not None and cfg.right_camera_factors:
+                    meas.append(o.uv_right)
+                    keys.append(key)
+                    cam_ids.append(1)
+            factor.add(meas, keys, cam_ids)
+            graph.add(factor)
+            factor_lids.append(lid)
+            smart_new[lid] = factor
+            if prev is None:
+                self.stats.landmarks_inserted += 1
+            else:
+                remove.append(prev[0])
+        return remove
 
     def _add_projection(
         self,
@@ -572,9 +659,33 @@ class VioBackend:
             )
             factor_lids.append(lid)
 
+    def _gate_ok(
+        self,
+        cams_from_world: list[np.ndarray],
+        p_w: np.ndarray,
+        uv_l: np.ndarray,
+        uv_r: np.ndarray | None,
+        gate_px: float,
+    ) -> bool:
+        """Cheap scalar check that an observation reprojects within ``gate_px`` (left camera)."""
+        c = cams_from_world[0]
+        x = c[0, 0] * p_w[0] + c[0, 1] * p_w[1] + c[0, 2] * p_w[2] + c[0, 3]
+        y = c[1, 0] * p_w[0] + c[1, 1] * p_w[1] + c[1, 2] * p_w[2] + c[1, 3]
+        z = c[2, 0] * p_w[0] + c[2, 1] * p_w[1] + c[2, 2] * p_w[2] + c[2, 3]
+        if z < self.config.min_depth_m:
+            return False
+        kmat = self._k_mats[0]
+        du = kmat[0, 0] * x / z + kmat[0, 2] - uv_l[0]
+        dv = kmat[1, 1] * y / z + kmat[1, 2] - uv_l[1]
+        return bool(du * du + dv * dv < gate_px * gate_px)
+
+    def _cams_from_world(self, world_from_body: np.ndarray) -> list[np.ndarray]:
+        """cam_from_world (4x4) of every camera for one body pose."""
+        return [invert_transform(world_from_body @ b) for b in self._body_from_cam]
+
     def _reprojection_errors(
         self,
-        world_from_body: np.ndarray,
+        cams_from_world: list[np.ndarray],
         p_w: np.ndarray,
         uv_l: np.ndarray,
         uv_r: np.ndarray | None,
@@ -584,7 +695,7 @@ class VioBackend:
         for cam, uv in ((0, uv_l), (1, uv_r)):
             if uv is None or cam >= len(self._cal):
                 continue
-            cam_from_world = invert_transform(world_from_body @ self._body_from_cam[cam])
+            cam_from_world = cams_from_world[cam]
             pc = cam_from_world[:3, :3] @ p_w + cam_from_world[:3, 3]
             if pc[2] < self.config.min_depth_m:
                 out.append(np.inf)
@@ -593,7 +704,9 @@ class VioBackend:
             out.append(float(np.hypot(proj[0] - uv[0], proj[1] - uv[1])))
         return np.asarray(out)
 
-    def _triangulate(self, track: list[_Obs], poses: dict[int, np.ndarray]) -> np.ndarray | None:
+    def _triangulate(
+        self, track: list[_Obs], poses: dict[int, list[np.ndarray]]
+    ) -> np.ndarray | None:
         """Linear (DLT) triangulation from every left/right view, then checks depth and error."""
         rows = []
         views = []
@@ -601,7 +714,7 @@ class VioBackend:
             for cam, uv in ((0, o.uv_left), (1, o.uv_right)):
                 if uv is None or cam >= len(self._cal):
                     continue
-                cam_from_world = invert_transform(poses[o.k] @ self._body_from_cam[cam])
+                cam_from_world = poses[o.k][cam]
                 xn = np.linalg.solve(self._k_mats[cam], np.array([uv[0], uv[1], 1.0]))
                 p = cam_from_world[:3, :]
                 rows.append(xn[0] * p[2] - p[0])
@@ -618,7 +731,8 @@ class VioBackend:
             err = self._reprojection_errors(poses[o.k], p_w, o.uv_left, o.uv_right)
             if not np.all(err < self.config.outlier_reprojection_px):
                 return None
-            depth = np.linalg.norm(p_w - poses[o.k][:3, 3])
+            cam_from_world = poses[o.k][0]
+            depth = np.linalg.norm(cam_from_world[:3, :3] @ p_w + cam_from_world[:3, 3])
             if depth > self.config.max_depth_m:
                 return None
         return p_w
@@ -699,8 +813,18 @@ class VioBackend:
         last = self._states[-1]
         pose = vals.atPose3(X(last.k)).matrix()
         bias = vals.atConstantBias(B(last.k))
-        lids = np.array(sorted(self._landmarks), dtype=np.int64)
-        pts = np.array([vals.atPoint3(L(int(i))) for i in lids]).reshape(-1, 3)
+        if self.config.landmark_model == "smart":
+            found = []
+            for lid, (_, factor) in self._smart.items():
+                res = factor.point()
+                if res.valid():
+                    found.append((lid, res.get()))
+            found.sort(key=lambda x: x[0])
+            lids = np.array([f[0] for f in found], dtype=np.int64)
+            pts = np.array([f[1] for f in found]).reshape(-1, 3)
+        else:
+            lids = np.array(sorted(self._landmarks), dtype=np.int64)
+            pts = np.array([vals.atPoint3(L(int(i))) for i in lids]).reshape(-1, 3)
         return Estimate(
             t_ns=last.t_ns,
             keyframe_id=last.keyframe_id,
