@@ -71,6 +71,7 @@ class _Estimator:
 def _worker(calib: Calibration, cfg: BackendConfig, inbox: Any, outbox: Any) -> None:
     """The worker process: feed the estimator, send back outputs, then its final stats."""
     estimator = _Estimator(calib, cfg)
+    outbox.put("ready")
     while True:
         msg = inbox.get()
         if isinstance(msg, EndOfStream):
@@ -119,6 +120,16 @@ class BackendStage(Stage):
                 name="slam-backend",
             )
             self._proc.start()
+            # Wait for the worker to import GTSAM and build the estimator (seconds on a busy
+            # machine), so that real-time playback does not start against a back end that
+            # cannot answer yet.
+            try:
+                ready = self._outbox.get(timeout=120)
+            except queue.Empty:
+                ready = None
+            if ready != "ready":
+                self._proc.terminate()
+                raise RuntimeError("the back-end worker process did not start")
             self._receiver = threading.Thread(target=self._receive, name="backend-rx", daemon=True)
             self._receiver.start()
         else:

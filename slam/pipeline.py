@@ -64,6 +64,12 @@ class Recorder:
                     self.keyframes.append((res.t_ns, res.world_from_body))
                     self.keyframe_times[res.keyframe_id] = res.t_ns
 
+    def reframe(self, new_from_old: np.ndarray) -> None:
+        """Re-express every pose recorded so far in a new world frame."""
+        with self._lock:
+            self.poses = [(t, new_from_old @ p) for t, p in self.poses]
+            self.keyframes = [(t, new_from_old @ p) for t, p in self.keyframes]
+
     def event(self, t_ns: int, text: str) -> None:
         with self._lock:
             self.events.append((t_ns, text))
@@ -156,7 +162,9 @@ def run_slam(
         if rec is not None
         else None
     )
-    frontend = FrontEnd(seq.calibration, cfg.frontend, imu_buffer, latest_estimate.get)
+    frontend = FrontEnd(
+        seq.calibration, cfg.frontend, imu_buffer, latest_estimate.get, recorder.reframe
+    )
     keyframe_consumers: list[Stage] = []
     imu_consumers: list[Stage] = []
     backend: BackendStage | None = None

@@ -53,6 +53,7 @@ class FrontEnd:
         cfg: FrontendConfig,
         imu: ImuBuffer | None = None,
         estimate_source: Callable[[], Estimate | None] | None = None,
+        on_reframe: Callable[[np.ndarray], None] | None = None,
     ):
         if not calib.is_stereo:
             raise ValueError("the front end needs a stereo calibration (cam0 and cam1)")
@@ -60,6 +61,8 @@ class FrontEnd:
         self.cfg = cfg
         self.imu = imu
         self.estimate_source = estimate_source or (lambda: None)
+        self.on_reframe = on_reframe
+        self.reframed = False
         self.cam0 = calib.cameras[0].intrinsics
         self.K = self.cam0.K
         self.body_from_cam0 = calib.cameras[0].body_from_cam
@@ -108,6 +111,13 @@ class FrontEnd:
             return
         correction = est.world_from_body @ invert_transform(fe_pose)
         self.stats.estimate_corrections += 1
+        if not self.reframed:
+            # The first initialised estimate moves us from the VO frame (the first body pose)
+            # into the back end's gravity-aligned world: a change of frame, not a correction,
+            # so everything already output must move with it.
+            self.reframed = True
+            if self.on_reframe is not None:
+                self.on_reframe(correction)
         rot, trans = correction[:3, :3], correction[:3, 3]
         for lid in self.landmarks:
             self.landmarks[lid] = rot @ self.landmarks[lid] + trans
