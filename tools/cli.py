@@ -1,8 +1,11 @@
 """The `slam` command: one entry point, one module per subcommand.
 
 Each ``tools/cmd_*.py`` module exposes ``register(subparsers)`` which adds its parser and sets
-``func`` to a handler ``(args) -> int``. Known user errors (``SlamError``) end in one line on
-stderr and exit status 2; nothing else is caught, so real bugs keep their traceback.
+``func`` to a handler ``(args) -> int``. Only the module of the command being run is imported
+(start-up time matters: `slam eval` must beat evo_ape, and some commands import scipy, GTSAM
+or OpenCV); the others appear in `slam --help` through their one-line summary below.
+Known user errors (``SlamError``) end in one line on stderr and exit status 2; nothing else is
+caught, so real bugs keep their traceback.
 """
 
 from __future__ import annotations
@@ -14,17 +17,17 @@ import sys
 
 from slam.errors import SlamError
 
-COMMAND_MODULES = (
-    "tools.cmd_synth",
-    "tools.cmd_info",
-    "tools.cmd_convert",
-    "tools.cmd_run",
-    "tools.cmd_eval",
-    "tools.cmd_bench",
-    "tools.cmd_fuse",
-    "tools.cmd_vocab",
-    "tools.cmd_pgo",
-)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "synth": ("tools.cmd_synth", "generate a synthetic stereo+IMU sequence with ground truth"),
+    "info": ("tools.cmd_info", "summarise a sequence: topics, rates, gaps, calibration"),
+    "convert": ("tools.cmd_convert", "write any sequence source as our MCAP"),
+    "run": ("tools.cmd_run", "track a sequence; trajectory, keyframes, stats, live rerun view"),
+    "eval": ("tools.cmd_eval", "trajectory error (APE, RPE, drift) against ground truth"),
+    "bench": ("tools.cmd_bench", "run the benchmark suite and tabulate accuracy and speed"),
+    "fuse": ("tools.cmd_fuse", "dense mesh by TSDF fusion (RGB-D folder, or sequence + poses)"),
+    "vocab": ("tools.cmd_vocab", "train or inspect a bag-of-words vocabulary"),
+    "pgo": ("tools.cmd_pgo", "optimise a g2o 3-D pose graph"),
+}
 
 DESCRIPTION = """\
 Stereo-inertial SLAM: turn a recorded camera+IMU sequence into a trajectory, a loop-closed map
@@ -41,7 +44,14 @@ folders. Run `slam CMD --help` for the details of each command.
 """
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _requested_command(argv: list[str]) -> str | None:
+    for token in argv:
+        if not token.startswith("-"):
+            return token
+    return None
+
+
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="slam",
         description=DESCRIPTION,
@@ -49,19 +59,17 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMAND_MODULES:
-        try:
-            module = importlib.import_module(name)
-        except ModuleNotFoundError as exc:  # a command not built yet in this checkout
-            if exc.name == name:
-                continue
-            raise
-        module.register(sub)
+    wanted = _requested_command(sys.argv[1:] if argv is None else argv)
+    for name, (module_name, summary) in COMMANDS.items():
+        if name == wanted:
+            importlib.import_module(module_name).register(sub)
+        else:
+            sub.add_parser(name, help=summary, description=summary)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    parser = build_parser(argv)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
