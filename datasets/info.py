@@ -104,6 +104,9 @@ def describe(path: str | os.PathLike[str], **open_kwargs: object) -> tuple[list[
         lines.extend(topic_lines(scan_mcap(mcap)))
         lines.append(f"not usable as a sequence: {exc}")
         return lines, False
+    verify = getattr(seq, "verify", None)
+    if callable(verify):  # CRC-check chunks that opening did not need to read
+        verify()
     scan = getattr(seq, "scan", None)
     if isinstance(scan, ScanResult):
         lines.extend(topic_lines(scan))

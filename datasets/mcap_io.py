@@ -98,6 +98,39 @@ class _Channels:
         return cid
 
 
+class _Window:
+    """Buffers one chunk's worth of images, then writes the window's small messages (IMU,
+    poses, camera_info) as one chunk and the images as image-only chunks.
+
+    Readers index image-only chunks from their MessageIndex records without decompressing them
+    (metadata ``image_chunks: separate``), so opening a file decompresses only the small chunks.
+    """
+
+    def __init__(self, writer: Writer, chunk_size_bytes: int) -> None:
+        self.writer = writer
+        self.limit = chunk_size_bytes
+        self.small_msgs: list[tuple[int, int, bytes]] = []
+        self.image_msgs: list[tuple[int, int, bytes]] = []
+        self.image_bytes = 0
+
+    def small(self, cid: int, t_ns: int, data: bytes) -> None:
+        self.small_msgs.append((cid, t_ns, data))
+
+    def image(self, cid: int, t_ns: int, data: bytes) -> None:
+        self.image_msgs.append((cid, t_ns, data))
+        self.image_bytes += len(data)
+        if self.image_bytes >= self.limit:
+            self.emit()
+
+    def emit(self) -> None:
+        for msgs in (self.small_msgs, self.image_msgs):
+            for cid, t_ns, data in msgs:
+                self.writer.add_message(cid, log_time=t_ns, data=data, publish_time=t_ns)
+            self.writer.flush()  # closes the chunk: small and image messages never share one
+            msgs.clear()
+        self.image_bytes = 0
+
+
 def _timeline(seq: Sequence) -> Iterator[tuple[int, int, ImuSample | StereoFrame | int]]:
     """Sensor messages and ground-truth pose indices merged by time (GT first at equal t)."""
     gt = seq.ground_truth
@@ -135,35 +168,43 @@ def write_sequence_mcap(
             writer = Writer(fh, chunk_size=chunk_size_bytes, compression=CompressionType.ZSTD)
             writer.start(profile="ros2", library="pyvislam")
             writer.add_metadata(CALIBRATION_METADATA, {"json": json.dumps(calib.to_dict())})
-            writer.add_metadata(SEQUENCE_METADATA, {"name": seq.name, "format_version": "1"})
+            writer.add_metadata(
+                SEQUENCE_METADATA,
+                {"name": seq.name, "format_version": "2", "image_chunks": "separate"},
+            )
             ch = _Channels(writer)
-            total = seq.num_frames + seq.num_imu + (len(seq.ground_truth or ()))
-            bar = tqdm(total=total, desc=f"write {out.name}", unit="msg", disable=not progress)
+            # every channel up front, so the first chunk (a small one) defines them all
+            n_cams = len(calib.cameras)
+            cid_info = [
+                ch.channel(CAMERA_INFO_TOPICS[k], "sensor_msgs/msg/CameraInfo")
+                for k in range(n_cams)
+            ]
+            cid_img = [ch.channel(IMAGE_TOPICS[k], "sensor_msgs/msg/Image") for k in range(n_cams)]
+            cid_imu = ch.channel(DEFAULT_IMU_TOPIC, "sensor_msgs/msg/Imu")
             gt = seq.ground_truth
+            cid_gt = ch.channel(DEFAULT_GT_TOPIC, "geometry_msgs/msg/PoseStamped") if gt else 0
+            window = _Window(writer, chunk_size_bytes)
+            total = seq.num_frames + seq.num_imu + (len(gt) if gt is not None else 0)
+            bar = tqdm(total=total, desc=f"write {out.name}", unit="msg", disable=not progress)
             for t_ns, _kind, item in _timeline(seq):
                 if isinstance(item, StereoFrame):
                     images = [item.left] + ([item.right] if item.right is not None else [])
                     t_cam = t_ns - offset_ns
-                    for k, img in enumerate(images[: len(calib.cameras)]):
+                    for k, img in enumerate(images[:n_cams]):
                         fid = CAMERA_FRAME_IDS[k]
-                        info = _camera_info(calib.cameras[k], t_cam, fid)
-                        cid = ch.channel(CAMERA_INFO_TOPICS[k], "sensor_msgs/msg/CameraInfo")
-                        writer.add_message(cid, log_time=t_ns, data=info, publish_time=t_ns)
-                        cid = ch.channel(IMAGE_TOPICS[k], "sensor_msgs/msg/Image")
-                        data = cdr.encode_image_mono8(t_cam, fid, img)
-                        writer.add_message(cid, log_time=t_ns, data=data, publish_time=t_ns)
+                        window.small(cid_info[k], t_ns, _camera_info(calib.cameras[k], t_cam, fid))
+                        window.image(cid_img[k], t_ns, cdr.encode_image_mono8(t_cam, fid, img))
                 elif isinstance(item, ImuSample):
-                    cid = ch.channel(DEFAULT_IMU_TOPIC, "sensor_msgs/msg/Imu")
                     data = cdr.encode_imu(t_ns, IMU_FRAME_ID, item.gyro_rad_s, item.accel_m_s2)
-                    writer.add_message(cid, log_time=t_ns, data=data, publish_time=t_ns)
+                    window.small(cid_imu, t_ns, data)
                 else:
                     assert gt is not None
-                    cid = ch.channel(DEFAULT_GT_TOPIC, "geometry_msgs/msg/PoseStamped")
                     data = cdr.encode_pose_stamped(
                         t_ns, WORLD_FRAME_ID, gt.positions_m[item], gt.q_wxyz[item]
                     )
-                    writer.add_message(cid, log_time=t_ns, data=data, publish_time=t_ns)
+                    window.small(cid_gt, t_ns, data)
                 bar.update(1)
+            window.emit()
             bar.close()
             writer.finish()
         os.replace(tmp, out)

@@ -33,7 +33,10 @@ from slam.errors import InputError
 
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 1, 2, 3, 4, 5, 6
-OP_METADATA, OP_DATA_END = 0x0C, 0x0F
+OP_MESSAGE_INDEX, OP_METADATA, OP_DATA_END = 0x07, 0x0C, 0x0F
+LAYOUT_METADATA = "pyvislam.sequence"  # {"image_chunks": "separate"}: see lazy chunks
+LAZY_SCHEMAS = ("sensor_msgs/msg/Image",)
+MESSAGE_PREFIX = 9 + 22  # opcode, length, channel, sequence, log and publish time
 SMALL_PAYLOAD_BYTES = 8192  # payloads up to this size are kept in memory by the scan
 HEAD_BYTES = 256  # of larger payloads only this much is kept (header stamp, image header)
 NO_STAMP = np.iinfo(np.int64).min
@@ -49,6 +52,8 @@ class ChunkRef:
     uncompressed_size: int
     start_ns: int  # message log-time span (from the chunk record)
     end_ns: int
+    crc: int = 0
+    validated: bool = True  # False: indexed from its MessageIndex records, not yet CRC-checked
 
 
 @dataclass
@@ -69,11 +74,13 @@ class ScanResult:
     msg_offset: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     msg_length: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     heads: list[bytes] = field(default_factory=list)  # whole payload if small, else its head
+    # (empty head, length -1: message of a lazily indexed chunk; its header stamp is unknown)
     complete: bool = False  # footer and closing magic seen
     lost_bytes: int = 0  # bytes at the end that could not be read (truncation)
     skipped_chunks: int = 0
     skipped_span_ns: int = 0
     warnings: list[str] = field(default_factory=list)
+    lazy: bool = False  # the file declares image-only chunks (our writer's layout)
 
     def topics(self) -> dict[str, tuple[str, int]]:
         """topic -> (schema name, message count), for every channel seen."""
@@ -101,6 +108,10 @@ class ScanResult:
                 schema = self.schemas.get(ch.schema_id)
                 return schema.name if schema else ""
         return ""
+
+
+class CorruptChunk(InputError):
+    """A lazily indexed chunk failed its CRC (or did not decompress) when it was read."""
 
 
 class UnsupportedCompression(InputError):
@@ -213,7 +224,8 @@ def _scan_top_level(mm: mmap.mmap, size: int, result: ScanResult, col: _Collecto
             result.lost_bytes = size - pos
             break
         if op == OP_CHUNK:
-            _read_chunk(mm, body, length, result, col)
+            if not (result.lazy and _index_lazily(mm, body, length, size, result, col)):
+                _read_chunk(mm, body, length, result, col)
         elif op == OP_MESSAGE:
             col.add(mm[body : body + length], 0, length, -1, body)
         elif op == OP_SCHEMA:
@@ -228,10 +240,62 @@ def _scan_top_level(mm: mmap.mmap, size: int, result: ScanResult, col: _Collecto
         elif op == OP_METADATA:
             m = _read_with(Metadata, mm[body : body + length])
             result.metadata[m.name] = dict(m.metadata)
+            if m.name == LAYOUT_METADATA and m.metadata.get("image_chunks") == "separate":
+                result.lazy = True
         pos = body + length
         if op == OP_FOOTER:
             result.complete = mm[pos : pos + 8] == MAGIC
             break
+
+
+def _message_indexes(mm: mmap.mmap, pos: int, size: int) -> dict[int, list[tuple[int, int]]] | None:
+    """The MessageIndex records right after a chunk: channel -> [(log_ns, offset)], or None."""
+    out: dict[int, list[tuple[int, int]]] = {}
+    while pos + 9 <= size and mm[pos] == OP_MESSAGE_INDEX:
+        (length,) = struct.unpack_from("<Q", mm, pos + 1)
+        body = pos + 9
+        if body + length > size:
+            return None
+        cid, nbytes = struct.unpack_from("<HI", mm, body)
+        raw = mm[body + 6 : body + 6 + nbytes]  # a copy: no buffer export pins the mmap
+        pairs = np.frombuffer(raw, dtype="<u8").reshape(-1, 2)
+        out[cid] = [(int(a), int(b)) for a, b in pairs]
+        pos = body + length
+    return out or None
+
+
+def _index_lazily(
+    mm: mmap.mmap, at: int, length: int, size: int, result: ScanResult, col: _Collector
+) -> bool:
+    """Index an image-only chunk from its MessageIndex records, without decompressing it.
+
+    Only for files whose metadata declares image-only chunks; the chunk's CRC is checked when
+    it is first read (:class:`ChunkCache`). Returns False when the chunk must be read instead.
+    """
+    indexes = _message_indexes(mm, at + length, size)
+    if indexes is None:
+        return False
+    for cid in indexes:
+        ch = result.channels.get(cid)
+        schema = result.schemas.get(ch.schema_id) if ch is not None else None
+        if schema is None or schema.name not in LAZY_SCHEMAS:
+            return False
+    start, end, usize, crc, compression, rec_at = _parse_chunk_header(
+        mm[at : at + min(length, 4096)]
+    )
+    index = len(result.chunks)
+    result.chunks.append(
+        ChunkRef(at + rec_at, length - rec_at, compression, usize, start, end, crc, False)
+    )
+    entries = sorted((off, log_ns, cid) for cid, pairs in indexes.items() for log_ns, off in pairs)
+    for off, log_ns, cid in entries:
+        col.channel.append(cid)
+        col.log_ns.append(log_ns)
+        col.chunk.append(index)
+        col.offset.append(off + MESSAGE_PREFIX)
+        col.length.append(-1)
+        col.heads.append(b"")
+    return True
 
 
 def _read_chunk(mm: mmap.mmap, at: int, length: int, result: ScanResult, col: _Collector) -> None:
@@ -240,7 +304,7 @@ def _read_chunk(mm: mmap.mmap, at: int, length: int, result: ScanResult, col: _C
     )
     data_offset = at + rec_at
     data_length = length - rec_at
-    ref = ChunkRef(data_offset, data_length, compression, usize, start, end)
+    ref = ChunkRef(data_offset, data_length, compression, usize, start, end, crc)
     view = memoryview(mm)[data_offset : data_offset + data_length]
     try:
         data = _decompress(compression, view, usize)
@@ -308,9 +372,21 @@ class ChunkCache:
             self._cache.move_to_end(index)
             return data
         ref = self.scan.chunks[index]
-        with memoryview(self._mm()) as whole:
-            with whole[ref.data_offset : ref.data_offset + ref.data_length] as view:
-                data = _decompress(ref.compression, view, ref.uncompressed_size)
+        try:
+            with memoryview(self._mm()) as whole:
+                with whole[ref.data_offset : ref.data_offset + ref.data_length] as view:
+                    data = _decompress(ref.compression, view, ref.uncompressed_size)
+            if not ref.validated and (
+                len(data) != ref.uncompressed_size or (ref.crc and zlib.crc32(data) != ref.crc)
+            ):
+                raise ValueError("CRC mismatch")
+        except UnsupportedCompression:
+            raise
+        except Exception as exc:  # noqa: BLE001 - any decoder error means a damaged chunk
+            raise CorruptChunk(
+                f"corrupt chunk at byte {ref.data_offset} skipped ({type(exc).__name__}: {exc}); "
+                f"messages logged {ref.start_ns * 1e-9:.3f}-{ref.end_ns * 1e-9:.3f} s are lost"
+            ) from exc
         self._cache[index] = data
         while len(self._cache) > self.max_chunks:
             self._cache.popitem(last=False)
@@ -324,11 +400,15 @@ class ChunkCache:
         s = self.scan
         chunk = int(s.msg_chunk[msg])
         off, n = int(s.msg_offset[msg]), int(s.msg_length[msg])
-        if n <= SMALL_PAYLOAD_BYTES:
+        if 0 <= n <= SMALL_PAYLOAD_BYTES:
             return memoryview(s.heads[msg])
         if chunk < 0:
             return memoryview(self._mm()[off : off + n])
-        return memoryview(self.chunk_data(chunk))[off : off + n]
+        data = self.chunk_data(chunk)
+        if n < 0:  # lazily indexed: the record's own length field tells
+            (rec_len,) = struct.unpack_from("<Q", data, off - MESSAGE_PREFIX + 1)
+            n = rec_len - (MESSAGE_PREFIX - 9)
+        return memoryview(data)[off : off + n]
 
     def close(self) -> None:
         self._cache.clear()

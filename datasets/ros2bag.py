@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from datasets import cdr
-from datasets.mcap_scan import ChunkCache, ScanResult, scan_mcap
+from datasets.mcap_scan import ChunkCache, CorruptChunk, ScanResult, scan_mcap
 from datasets.sequence import ImuArrays, Sequence
 from datasets.timing import find_gaps, pair_stereo, sort_dedupe
 from slam.calibration import Calibration
@@ -153,11 +153,11 @@ class Ros2McapSequence(Sequence):
         offset_ns = int(calibration.time_offset_ns)
 
         # --- cameras ---------------------------------------------------------------------------
-        left_msgs, left_t = self._topic_times(left, warnings)
+        left_msgs, left_t = self._topic_times(left, warnings, offset_ns)
         self._left_decode = self._decoder(left)
         self._check_first_image(left, left_msgs)
         if right is not None:
-            right_msgs, right_t = self._topic_times(right, warnings)
+            right_msgs, right_t = self._topic_times(right, warnings, offset_ns)
             self._check_first_image(right, right_msgs)
             self._right_decode = self._decoder(right)
             pairing = pair_stereo(left_t, right_t, pair_tolerance_ns)
@@ -189,11 +189,23 @@ class Ros2McapSequence(Sequence):
         self._cache = ChunkCache(s, max_chunks=3)
 
     # --- indexing helpers ----------------------------------------------------------------------
-    def _topic_times(self, topic: str, warnings: list[str]) -> tuple[np.ndarray, np.ndarray]:
-        """Message numbers of a topic and their header stamps, cleaned (sorted, no repeats)."""
+    def _topic_times(
+        self, topic: str, warnings: list[str], offset_ns: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Message numbers of a topic and their header stamps, cleaned (sorted, no repeats).
+
+        Images of lazily indexed chunks (our writer's layout) have no head read yet: our writer
+        stamps them ``log time - offset``, so that is their stamp.
+        """
         s = self.scan
         msgs = np.nonzero(np.isin(s.msg_channel, s.channel_ids(topic)))[0]
-        stamps = np.array([cdr.stamp_ns(s.heads[i]) for i in msgs], dtype=np.int64)
+        stamps = np.array(
+            [
+                cdr.stamp_ns(s.heads[i]) if s.msg_length[i] >= 0 else s.msg_log_ns[i] - offset_ns
+                for i in msgs
+            ],
+            dtype=np.int64,
+        )
         zero = (stamps == 0) & (s.msg_log_ns[msgs] != 0)  # a zero stamp at log time 0 is real
         if np.any(zero):
             stamps[zero] = s.msg_log_ns[msgs[zero]]
@@ -215,6 +227,8 @@ class Ros2McapSequence(Sequence):
         if len(msgs) == 0 or self.scan.schema_name(topic) != "sensor_msgs/msg/Image":
             return
         head = self.scan.heads[int(msgs[0])]
+        if not head:  # lazily indexed (our writer: mono8); decoding checks it anyway
+            return
         try:
             enc = cdr.parse_image_header(head).encoding
         except Exception:  # noqa: BLE001 - head may cut a huge frame_id; decode will tell
@@ -305,13 +319,41 @@ class Ros2McapSequence(Sequence):
         for c, i in last_use.items():
             release.setdefault(i, []).append(c)
         cache = ChunkCache(s, max_chunks=1 << 30)
+        skipped = 0
         try:
             for i in range(chunk_of.shape[1]):
-                yield self._decode(cache, i)
+                try:
+                    frame = self._decode(cache, i)
+                except CorruptChunk as exc:
+                    if str(exc) not in self.warnings:
+                        self.warn(str(exc))
+                    skipped += 1
+                else:
+                    yield frame
                 for c in release.get(i, ()):
                     cache.drop(c)
         finally:
             cache.close()
+            if skipped:
+                self.warn(f"{skipped} frame(s) in corrupt chunks were skipped while reading")
+
+    def verify(self) -> int:
+        """Read every lazily indexed (not yet CRC-checked) chunk once; returns how many are
+        corrupt (each also warned about). ``slam info`` calls this."""
+        cache = ChunkCache(self.scan, max_chunks=1)
+        bad = 0
+        try:
+            for k, ref in enumerate(self.scan.chunks):
+                if ref.validated:
+                    continue
+                try:
+                    cache.chunk_data(k)
+                except CorruptChunk as exc:
+                    self.warn(str(exc))
+                    bad += 1
+        finally:
+            cache.close()
+        return bad
 
     def close(self) -> None:
         self._cache.close()

@@ -59,25 +59,37 @@ def test_truncated_mcap_keeps_prefix(good, tmp_path: Path) -> None:
         list(make_reader(fh).iter_messages())
 
 
-def test_corrupt_chunk_is_skipped(good, tmp_path: Path) -> None:
+def test_corrupt_chunks_are_skipped(good, tmp_path: Path) -> None:
+    """One damaged image chunk and one damaged IMU/pose chunk: both skipped with warnings."""
     seq, path = good
     scan = scan_mcap(path)
-    assert len(scan.chunks) > 6
-    ref_chunk = scan.chunks[len(scan.chunks) // 2]
+    images = [c for c in scan.chunks if not c.validated]  # image-only chunks, read lazily
+    small = [c for c in scan.chunks if c.validated]
+    assert len(images) > 6 and len(small) > 3
     data = bytearray(path.read_bytes())
-    mid = ref_chunk.data_offset + ref_chunk.data_length // 2
-    data[mid : mid + 64] = bytes(64)  # zero out 64 bytes inside one compressed chunk
+    for ref in (images[len(images) // 2], small[len(small) // 2]):
+        mid = ref.data_offset + ref.data_length // 2
+        data[mid : mid + 64] = bytes(64)  # zero 64 bytes inside the compressed chunk
     bad = tmp_path / "corrupt.mcap"
     bad.write_bytes(bytes(data))
     back = McapSequence(bad)
-    assert sum("corrupt chunk" in w for w in back.warnings) == 1
-    assert back.num_frames < N_FRAMES
-    assert back.num_frames >= N_FRAMES - 6  # one chunk of 48 kB holds a few images at most
-    ref = _frames_by_time(seq)
-    for f in back.iter_frames():  # everything outside the bad chunk is intact
-        assert np.array_equal(f.left, ref[f.t_ns].left) and np.array_equal(
-            f.right, ref[f.t_ns].right
-        )
+    # opening reads the small chunks: the damaged one is reported, and the IMU hole it leaves
+    assert sum(w.startswith("corrupt chunk at byte") for w in back.warnings) == 1
+    assert any("/imu0: 1 gap(s)" in w for w in back.warnings)
+    np.testing.assert_array_equal(
+        back.imu().gyro_rad_s, seq.imu().gyro_rad_s[np.isin(seq.imu().t_ns, back.imu().t_ns)]
+    )
+    # image chunks are CRC-checked when read: frames in the damaged one are skipped
+    ref_frames = _frames_by_time(seq)
+    frames = list(back.iter_frames())
+    assert N_FRAMES - 6 <= len(frames) < N_FRAMES
+    for f in frames:  # everything outside the bad chunk is intact
+        assert np.array_equal(f.left, ref_frames[f.t_ns].left)
+        assert np.array_equal(f.right, ref_frames[f.t_ns].right)
+    assert sum(w.startswith("corrupt chunk at byte") for w in back.warnings) == 2
+    assert any("frame(s) in corrupt chunks were skipped" in w for w in back.warnings)
+    # verify() (what `slam info` runs) finds the image chunk without iterating
+    assert McapSequence(bad).verify() == 1
 
 
 def _write_raw(
