@@ -159,24 +159,27 @@ class CameraRenderer:
         with np.errstate(divide="ignore"):
             inv = [f32(1.0) / dk for dk in d]
 
-        # room: exit through the nearest plane ahead; the hit face is 2 * axis + (d > 0)
+        # room: exit through the nearest plane ahead; the hit face is 2 * axis + (d > 0).
+        # Selections are done with arithmetic on 0/1 masks: np.where and boolean indexing
+        # are 10-30x slower than a multiply on arrays of this size.
         lo = scene.room.lo_m
         hi = scene.room.hi_m
-        t_best = np.empty(xn.shape, f32)
-        axis = np.zeros(xn.shape, np.int8)
-        face = np.zeros(xn.shape, np.int16)
-        for k in range(3):
-            tk = np.maximum(f32(lo[k] - origin[k]) * inv[k], f32(hi[k] - origin[k]) * inv[k])
-            fk = (d[k] > 0).astype(np.int16)
-            fk += 2 * k
-            if k == 0:
-                t_best[:] = tk
-                face[:] = fk
-            else:
-                m = tk < t_best
-                t_best[m] = tk[m]
-                axis[m] = k
-                face[m] = fk[m]
+        t_axis = [
+            np.maximum(f32(lo[k] - origin[k]) * inv[k], f32(hi[k] - origin[k]) * inv[k])
+            for k in range(3)
+        ]
+        positive = [dk > 0 for dk in d]
+        sel1 = t_axis[1] < t_axis[0]
+        t01 = np.minimum(t_axis[0], t_axis[1])
+        sel2 = t_axis[2] < t01
+        t_best = np.minimum(t01, t_axis[2])
+        side = positive[0] ^ (sel1 & (positive[0] ^ positive[1]))
+        side ^= sel2 & (side ^ positive[2])
+        axis = sel1.astype(np.int8)
+        axis += sel2 * (np.int8(2) - axis)
+        face = axis.astype(np.int16)
+        face *= 2
+        face += side
 
         # boxes: slab entry, only over the pixels that can see each box
         for b, box in enumerate(scene.boxes):
@@ -185,34 +188,43 @@ class CameraRenderer:
                 continue
             a0, a1 = max(rect[0], r0) - r0, min(rect[1], r1) - r0
             c0, c1 = rect[2], rect[3]
-            t_near = t_far = None
-            ax_near = np.zeros((a1 - a0, c1 - c0), np.int8)
-            side = np.zeros((a1 - a0, c1 - c0), np.int16)
+            t_near = t_far = ax_near = side_b = None
             for k in range(3):
                 ik = inv[k][a0:a1, c0:c1]
                 t1 = f32(box.lo_m[k] - origin[k]) * ik
                 t2 = f32(box.hi_m[k] - origin[k]) * ik
                 tmin = np.minimum(t1, t2)
                 tmax = np.maximum(t1, t2)
-                neg = d[k][a0:a1, c0:c1] < 0  # entering through the high face
-                if t_near is None or t_far is None:
+                neg = ~positive[k][a0:a1, c0:c1]  # entering through the high face
+                if t_near is None or t_far is None or ax_near is None or side_b is None:
                     t_near, t_far = tmin, tmax
-                    side[neg] = 1
+                    ax_near = np.zeros(tmin.shape, np.int8)
+                    side_b = neg
                 else:
                     later = tmin > t_near
-                    t_near = np.where(later, tmin, t_near)
-                    ax_near[later] = k
-                    side[later] = neg[later]
+                    np.maximum(t_near, tmin, out=t_near)
+                    ax_near += later * (np.int8(k) - ax_near)
+                    side_b = side_b ^ (later & (side_b ^ neg))
                     np.minimum(t_far, tmax, out=t_far)
             assert t_near is not None and t_far is not None
+            assert ax_near is not None and side_b is not None
+            valid = (t_near <= t_far) & (t_near > 0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                # inf or nan where the ray misses the box (fmin and < ignore nan)
+                cand = np.maximum(t_near, f32(0.0)) / valid
             tb = t_best[a0:a1, c0:c1]
-            hit = (t_near <= t_far) & (t_near > 0) & (t_near < tb)
+            hit = cand < tb
             if not hit.any():
                 continue
-            tb[hit] = t_near[hit]
-            axis[a0:a1, c0:c1][hit] = ax_near[hit]
-            fid = side + 2 * ax_near.astype(np.int16) + (6 + 6 * b)
-            face[a0:a1, c0:c1][hit] = fid[hit]
+            np.fmin(tb, cand, out=tb)
+            ax_s = axis[a0:a1, c0:c1]
+            ax_s += hit * (ax_near - ax_s)
+            fid = ax_near.astype(np.int16)
+            fid *= 2
+            fid += side_b
+            fid += 6 + 6 * b
+            f_s = face[a0:a1, c0:c1]
+            f_s += hit * (fid - f_s)
 
         # hit points -> atlas coordinates (level 0): u along the first in-plane axis
         # (y for x-walls, else x), v down along the second (z for walls, y for floor/ceiling)
@@ -225,15 +237,21 @@ class CameraRenderer:
         ppm = f32(scene.px_per_m)
         on_x = axis == 0
         on_z = axis == 2
-        map_x = np.where(on_x, py, px)
+        map_x = py - px
+        map_x *= on_x
+        map_x += px
         map_x *= ppm
-        map_x += self._tex_x0[face]
-        map_y = np.where(on_z, py, pz)
+        map_x += np.take(self._tex_x0, face)
+        map_y = py - pz
+        map_y *= on_z
+        map_y += pz
         map_y *= -ppm
-        map_y += self._tex_y0[face]
+        map_y += np.take(self._tex_y0, face)
 
         # mip level: log2 of texels per pixel footprint, widened for oblique incidence
-        d_normal = np.where(on_x, d[0], np.where(on_z, d[2], d[1]))
+        d_normal = (d[0] - d[1]) * on_x
+        d_normal += (d[2] - d[1]) * on_z
+        d_normal += d[1]
         np.abs(d_normal, out=d_normal)
         ray_len = self._ray_len[r0:r1]
         fp2 = t_best * ray_len
