@@ -18,6 +18,12 @@ Metadata records: ``pyvislam.calibration`` (``json`` = ``Calibration.to_dict()``
 ``pyvislam.sequence`` (``name``). They are written first, so a truncated file keeps them.
 Times: log time = publish time = ``t_ns`` in the IMU clock; camera header stamps are in the
 camera clock (``t_ns - calibration.time_offset_ns``), so reading adds the offset back.
+
+Chunk layout: images go in image-only chunks, everything else (IMU, poses, camera_info) in
+small chunks written just before the images of the same time window (``pyvislam.sequence``
+says ``image_chunks: separate``). Any MCAP reader handles this (messages are found through the
+chunk and message indexes); ours uses it to open a file without decompressing any image: image
+chunks are indexed from their MessageIndex records and decompressed once, while streaming.
 """
 
 from __future__ import annotations

@@ -72,6 +72,17 @@ def open_sequence(
         return EurocSequence(p, gt_path=gt_path)
     mcap = find_mcap(p)
     if mcap is None:
+        if p.suffix == ".db3" or (p.is_dir() and any(p.glob("*.db3"))):
+            raise InputError(
+                f"{p} is a ROS 2 bag in SQLite format; convert it to MCAP first "
+                "(`rosbags-convert --src BAG --dst OUT --dst-storage mcap`, or record with "
+                "`ros2 bag record --storage mcap`)"
+            )
+        if p.suffix == ".bag":
+            raise InputError(
+                f"{p} is a ROS 1 bag; convert it to a ROS 2 MCAP bag first "
+                "(`rosbags-convert --src FILE.bag --dst OUT --dst-storage mcap`)"
+            )
         raise InputError(f"{p}: not a sequence I can read; expected {SUPPORTED}")
 
     calibration = None

@@ -202,6 +202,14 @@ def test_unrecognised_paths(tmp_path: Path) -> None:
         open_sequence(tmp_path)
 
 
+def test_ros1_bag_gets_a_conversion_hint(shared_data: Path) -> None:
+    from conftest import require
+
+    bag = require(shared_data / "trajectories" / "evo_testdata" / "ROS_example.bag")
+    with pytest.raises(InputError, match="ROS 1 bag.*rosbags-convert"):
+        open_sequence(bag)
+
+
 def test_cli_reports_one_line(good, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     _seq, path = good
     data = path.read_bytes()
