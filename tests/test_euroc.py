@@ -221,3 +221,19 @@ def test_imu_T_BS_moves_cameras_and_ground_truth_to_imu(tmp_path: Path) -> None:
     np.testing.assert_allclose(
         plain.ground_truth.matrices(), gt_raw.matrices() @ B_from_imu, atol=1e-12
     )
+
+
+def test_unordered_csv_rows_are_sorted_and_counted(tmp_path: Path) -> None:
+    ref = write_asl_folder(tmp_path)
+    csv = tmp_path / "mav0" / "imu0" / "data.csv"
+    lines = csv.read_text().splitlines()
+    lines[5], lines[6] = lines[6], lines[5]  # one pair swapped
+    lines.insert(9, lines[9])  # one row repeated
+    csv.write_text("\n".join(lines) + "\n")
+    seq = EurocSequence(tmp_path)
+    assert (
+        "imu0/data.csv: 1 out of time order (sorted), 1 with duplicate timestamps (dropped)"
+        in seq.warnings
+    )
+    np.testing.assert_array_equal(seq.imu().t_ns, ref.imu().t_ns)  # type: ignore[attr-defined]
+    np.testing.assert_array_equal(seq.imu().accel_m_s2, ref.imu().accel_m_s2)  # type: ignore[attr-defined]
