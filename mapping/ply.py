@@ -83,6 +83,7 @@ def _write_atomic(path: str | Path, header: str, chunks: list[bytes]) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        os.fchmod(fd, 0o644)  # mkstemp creates 0600; a mesh is an ordinary output file
         with os.fdopen(fd, "wb") as fh:
             fh.write(header.encode("ascii"))
             for chunk in chunks:
