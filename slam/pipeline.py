@@ -246,6 +246,7 @@ def run_slam(
                 **{f"stage_{s.name}": s.latency_stats() for s in stages},
             },
             "peak_rss_mb": peak_rss_mb(),
+            "peak_rss_children_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0,
             "backend": None
             if backend is None
             else {

@@ -1,0 +1,92 @@
+"""CLI smoke tests of `slam run`: every headless rerun mode, outputs, then `slam eval` on them."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from conftest import PROJECT_ROOT
+
+from tools.cli import main as slam
+
+
+@pytest.fixture(scope="module")
+def seq_path(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("seq") / "fig8.mcap"
+    assert slam(["synth", str(path), "--profile", "figure8", "--duration", "4", "-q"]) == 0
+    return path
+
+
+@pytest.mark.parametrize("preset", ["stereo-vo", "euroc-stereo-imu"])
+@pytest.mark.parametrize("rerun_mode", ["none", "save"])
+def test_run_outputs_and_eval(seq_path, tmp_path, rerun_mode, preset):
+    out = tmp_path / "run"
+    mode = f"save:{tmp_path / 'run.rrd'}" if rerun_mode == "save" else "none"
+    argv = [
+        "run",
+        str(seq_path),
+        "--out",
+        str(out),
+        "--speed",
+        "max",
+        "--rerun",
+        mode,
+        "--config",
+        preset,
+        "--no-progress",
+    ]
+    assert slam(argv) == 0
+    for name in ("trajectory.tum", "trajectory.csv", "keyframes.tum", "stats.json", "config.yaml"):
+        assert (out / name).stat().st_size > 0, name
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["frames_in"] == 81 and stats["frames_tracked"] == 81
+    for key in ("p50_ms", "p90_ms", "p99_ms", "max_ms"):
+        assert stats["latency"]["frontend_frame"][key] > 0
+    assert stats["peak_rss_mb"] > 0
+    if preset == "euroc-stereo-imu":
+        assert stats["backend"]["initialised_after_s"] is not None
+    if rerun_mode == "save":
+        rrd = tmp_path / "run.rrd"
+        assert rrd.stat().st_size > 10_000
+        rerun_bin = Path(sys.executable).parent / "rerun"
+        if rerun_bin.exists():
+            proc = subprocess.run(
+                [str(rerun_bin), "rrd", "verify", str(rrd)], capture_output=True, text=True
+            )
+            assert proc.returncode == 0, proc.stderr
+    # `slam eval ape SEQ DIR` works directly on the outputs
+    ape_json = tmp_path / "ape.json"
+    assert (
+        slam(["eval", "ape", str(seq_path), str(out), "--align", "se3", "--json", str(ape_json)])
+        == 0
+    )
+    rmse = json.loads(ape_json.read_text())["stats"]["rmse"]
+    assert rmse < 0.05
+
+
+def test_run_bad_inputs_are_one_line_errors(tmp_path, capsys):
+    assert slam(["run", str(tmp_path / "missing.mcap"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "error" in err[0]
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text("frontend:\n  max_featurez: 10\n")
+    seq = tmp_path / "s.mcap"
+    assert slam(["synth", str(seq), "--duration", "1", "-q"]) == 0
+    assert slam(["run", str(seq), "--out", str(tmp_path / "o"), "--config", str(cfg)]) == 2
+    assert "max_featurez" in capsys.readouterr().err
+
+
+def test_help_teaches():
+    proc = subprocess.run(
+        [sys.executable, "-m", "tools.cli", "run", "--help"],
+        capture_output=True,
+        text=True,
+        cwd=PROJECT_ROOT,
+    )
+    assert proc.returncode == 0
+    assert (
+        "examples:" in proc.stdout and "--rerun" in proc.stdout and "slam eval ape" in proc.stdout
+    )

@@ -1,0 +1,81 @@
+"""`slam bench`: the benchmark suite, a markdown table and JSON per run."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+EPILOG = """\
+examples:
+  slam bench --out bench_out                      # the standard synthetic suite (cached)
+  slam bench --out bench_out --quick 20           # every suite sequence cut to 20 s
+  slam bench --out b2 --no-suite ~/data/V1_01_easy --config euroc-stereo-imu
+  slam bench --out b3 --compare bench_out/results.json   # show the change since then
+
+The standard suite (generated once, cached in --cache-dir, deterministic):
+  room-figure8 60 s, room-loop 80 s, room-aggressive 60 s (room-scale), hall 140 s (hall-scale),
+  stereo 752x480 @ 20 Hz, IMU 200 Hz with EuRoC ADIS16448 noise.
+Every run is `slam run SEQ --speed max` in its own process, without a viewer.
+"""
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "bench",
+        help="run the benchmark suite and tabulate accuracy and speed",
+        description="Run the pipeline over the standard synthetic suite (and any sequences "
+        "given) and write results.md (a markdown table) and results.json.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("sequences", nargs="*", type=Path, help="extra sequences to run")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--no-suite", action="store_true", help="skip the standard synthetic suite")
+    p.add_argument(
+        "--quick",
+        type=float,
+        default=None,
+        metavar="S",
+        help="cut every suite sequence to S seconds",
+    )
+    p.add_argument(
+        "--cache-dir",
+        type=Path,
+        default=None,
+        help="where suite sequences are cached (default ~/.cache/pyvislam/bench)",
+    )
+    p.add_argument("--config", default=None, help="preset or YAML passed to every slam run")
+    p.add_argument(
+        "--compare",
+        type=Path,
+        default=None,
+        metavar="OLD.json",
+        help="a previous results.json: show the change of every number",
+    )
+    p.add_argument(
+        "--run-arg",
+        action="append",
+        default=[],
+        metavar="ARG",
+        help="extra argument for slam run (repeatable), e.g. --run-arg=--rerun=save:x.rrd",
+    )
+    p.set_defaults(func=handle)
+
+
+def handle(args: argparse.Namespace) -> int:
+    from tools.benchmark import STANDARD_SUITE, default_cache_dir, quick_suite, run_benchmark
+
+    suite = None if args.no_suite else (quick_suite(args.quick) if args.quick else STANDARD_SUITE)
+    _, table = run_benchmark(
+        args.out,
+        list(args.sequences),
+        suite,
+        args.cache_dir or default_cache_dir(),
+        preset=args.config,
+        extra_args=list(args.run_arg),
+        compare=args.compare,
+    )
+    print()
+    print(table)
+    print(f"results in {args.out}/results.md and {args.out}/results.json")
+    return 0
