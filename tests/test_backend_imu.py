@@ -125,3 +125,33 @@ def test_buffer_rejects_counts_and_warns(caplog):
     assert buf.preintegrate(params, bias, 20_000_000, 500_000_000) is None
     buf.trim(400_000_000)
     assert len(buf) == 2  # the last sample before the trim time is kept for bracketing
+
+
+def test_propagate_state_follows_the_simulated_truth():
+    from slam.backend.imu import propagate_state
+    from slam.backend.sim import generate_world
+
+    world = generate_world(duration_s=3.0, seed=1, imu_noise=False, landmarks_per_keyframe=10)
+    params = preintegration_params(world.calibration.imu)
+    imu = world.imu
+    kf0, kf1 = world.keyframes[5], world.keyframes[7]  # 0.2 s apart
+    t0_s = (kf0.t_ns - 1_000_000_000) * 1e-9
+    out = propagate_state(
+        world.world_from_body_gt[5],
+        world.trajectory.velocity(np.array([t0_s]))[0],
+        imu.bias_gyro_rad_s[0],
+        imu.bias_accel_m_s2[0],
+        kf0.t_ns,
+        kf1.t_ns,
+        imu.t_ns,
+        imu.gyro_rad_s,
+        imu.accel_m_s2,
+        params,
+    )
+    assert out is not None
+    pose, _ = out
+    assert np.linalg.norm(pose[:3, 3] - world.world_from_body_gt[7][:3, 3]) < 1e-3
+    assert propagate_state(
+        pose, np.zeros(3), np.zeros(3), np.zeros(3), kf1.t_ns, imu.t_ns[-1] + 10**9,
+        imu.t_ns, imu.gyro_rad_s, imu.accel_m_s2, params,
+    ) is None  # fmt: skip

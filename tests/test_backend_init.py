@@ -17,7 +17,7 @@ from slam.backend.init import (
 )
 from slam.backend.sim import generate_world
 from slam.calibration import ImuCalibration
-from slam.geometry import quat_wxyz_to_matrix, transform_points
+from slam.geometry import quat_wxyz_to_matrix, so3_log, transform_points
 
 
 @pytest.fixture(scope="module")
@@ -103,3 +103,48 @@ def test_moving_start_alignment_on_simulated_flight(seed):
     assert speed.min() > 0.3  # really a moving start
     assert np.linalg.norm(res.velocities_vo_m_s - v_true, axis=1).max() < 0.05
     assert np.abs(res.bias_gyro_rad_s - world.imu.bias_gyro_rad_s[0]).max() < 0.005
+
+
+def test_backend_still_start_on_real_euroc_imu(euroc):
+    """The whole back end on the real stream: keyframes carry ground-truth poses as 'VO' (in the
+    gravity-aligned Vicon frame) and no observations; it must initialise from the still start."""
+    from slam.backend.sim import euroc_like_calibration
+    from slam.backend.smoother import VioBackend
+    from slam.messages import ImuSample, Keyframe
+
+    imu, gt = euroc
+    calib = euroc_like_calibration()
+    backend = VioBackend(calib, BackendConfig(still_init_method="align"))
+    t_imu = imu[:, 0].astype(np.int64)
+    j = 0
+    estimates = []
+    for row in range(5, 80, 5):  # keyframes every 0.25 s over the first 4 s (still)
+        t_kf = int(gt[row, 0])
+        while j < len(t_imu) and t_imu[j] <= t_kf:
+            backend.add_imu(ImuSample(int(t_imu[j]), imu[j, 1:4], imu[j, 4:7]))
+            j += 1
+        pose = np.eye(4)
+        pose[:3, :3] = quat_wxyz_to_matrix(gt[row, 4:8])
+        pose[:3, 3] = gt[row, 1:4]
+        kf = Keyframe(
+            t_ns=t_kf,
+            keyframe_id=row,
+            frame_index=row,
+            segment_id=0,
+            world_from_body_vo=pose,
+            landmark_ids=np.zeros(0, np.int64),
+            pixels_left_undist=np.zeros((0, 2)),
+            pixels_right_undist=np.zeros((0, 2)),
+            points_world_vo=np.zeros((0, 3)),
+            image_left=np.zeros((1, 1), np.uint8),
+            image_right=None,
+        )
+        estimates.append(backend.add_keyframe(kf))
+    assert backend.stats.init_method == "still"
+    assert all(e is not None for e in estimates)
+    assert estimates[-1].initialized and not estimates[0].initialized
+    # the Vicon frame is gravity aligned, so world_from_vo must be (nearly) a pure translation
+    tilt_deg = np.degrees(np.linalg.norm(so3_log(backend.world_from_vo[:3, :3])))
+    assert tilt_deg < 1.0
+    assert np.abs(estimates[-1].bias_gyro_rad_s - gt[0, 11:14]).max() < 0.003
+    assert len({e.keyframe_id for e in estimates}) == len(estimates)

@@ -214,3 +214,36 @@ class ImuBuffer:
         if k > 0:
             del self._t[:k], self._gyro[:k], self._accel[:k]
             self._cache = None
+
+
+def propagate_state(
+    world_from_body: np.ndarray,
+    velocity_world_m_s: np.ndarray,
+    bias_gyro_rad_s: np.ndarray,
+    bias_accel_m_s2: np.ndarray,
+    t0_ns: int,
+    t1_ns: int,
+    imu_t_ns: np.ndarray,
+    imu_gyro_rad_s: np.ndarray,
+    imu_accel_m_s2: np.ndarray,
+    params: gtsam.PreintegrationCombinedParams,
+    max_gap_s: float = 0.1,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """IMU-propagate a state (e.g. the latest ``Estimate``) from t0 to t1 in a z-up world.
+
+    Returns (world_from_body 4x4, velocity) at t1, or None when the IMU does not cover
+    [t0, t1]. For per-frame poses and pose priors in the front end (never waits on the back end).
+    """
+    if t1_ns == t0_ns:
+        return np.asarray(world_from_body, float).copy(), np.asarray(velocity_world_m_s, float)
+    pieces = integration_pieces(imu_t_ns, imu_gyro_rad_s, imu_accel_m_s2, t0_ns, t1_ns, max_gap_s)
+    if pieces is None:
+        return None
+    bias = make_bias(bias_gyro_rad_s, bias_accel_m_s2)
+    pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
+    integrate_pieces(pim, pieces)
+    state = gtsam.NavState(
+        gtsam.Pose3(np.asarray(world_from_body, float)), np.asarray(velocity_world_m_s, float)
+    )
+    pred = pim.predict(state, bias)
+    return pred.pose().matrix(), np.asarray(pred.velocity(), float)

@@ -162,6 +162,7 @@ class VioBackend:
         # landmark id -> (factor index in the smoother, the smart factor) in "smart" mode
         self._smart: dict[int, tuple[int, Any]] = {}
         self._initialized = False
+        self._segment_id = 0  # the front end's map segment of the latest keyframe
         self._world_from_vo = np.eye(4)
         self._init_keyframes: list[Keyframe] = []
         self._smoother: gtsam.IncrementalFixedLagSmoother | None = None
@@ -215,10 +216,18 @@ class VioBackend:
         cpu_start = time.thread_time()
         self.stats.keyframes += 1
         kf_pose_vo = _finite_pose(kf.world_from_body_vo)
-        if not self._initialized:
+        last_t_ns = self._states[-1].t_ns if self._initialized and self._states else -1
+        if self._initialized and kf.t_ns <= last_t_ns:
+            log.warning("keyframe %d ignored: its time is not after the last state", kf.keyframe_id)
+            est = None
+        elif not self._initialized:
             est = self._try_initialise(kf, kf_pose_vo)
         else:
+            if kf.segment_id != self._segment_id:
+                # a new VO map segment: relative VO poses across the boundary are meaningless
+                self._states[-1].world_from_body_vo = None
             est = self._add_with_recovery(kf, kf_pose_vo)
+        self._segment_id = kf.segment_id
         self.stats.update_times_s.append(time.perf_counter() - t_start)
         self.stats.update_cpu_s.append(time.thread_time() - cpu_start)
         self.stats.factor_counts.append(self.n_factors())
@@ -271,6 +280,8 @@ class VioBackend:
 
     def _try_initialise(self, kf: Keyframe, pose_vo: np.ndarray | None) -> Estimate:
         cfg = self.config
+        if kf.segment_id != self._segment_id:
+            self._init_keyframes = []  # VO poses of different segments do not chain
         if pose_vo is None:
             return self._uninitialised_estimate(kf, None)
         self._init_keyframes.append(kf)
