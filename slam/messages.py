@@ -127,3 +127,23 @@ class BackendOutput:
     keyframe_id: int
     update_ms: float  # wall time of add_keyframe()
     events: tuple[str, ...] = ()  # initialised, resets, IMU warnings since the last output
+
+
+@dataclass(frozen=True, eq=False)
+class LoopCorrection:
+    """A loop closure's drift correction, published after each pose-graph optimisation.
+
+    The front and back ends keep running in their odometry world; ``map_from_odom[segment]``
+    (4x4) maps a segment's odometry poses into the loop-corrected map (apply it to poses newer
+    than the segment's last corrected keyframe). ``corrected_keyframe_poses`` maps keyframe id
+    -> map_from_body for every keyframe the loop closer holds.
+    """
+
+    t_ns: int  # time of the newest keyframe when the correction was made
+    loop_id: int  # the newest loop in the optimisation (-1: none survived)
+    query_keyframe_id: int
+    match_keyframe_id: int
+    inliers: int
+    map_generation: int  # increments with every correction
+    map_from_odom: dict[int, np.ndarray]
+    corrected_keyframe_poses: dict[int, np.ndarray]

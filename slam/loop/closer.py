@@ -1,0 +1,599 @@
+"""The loop closer: place recognition -> verification -> gates -> pose graph -> correction.
+
+VINS-Fusion-style drift correction: the front and back ends keep running in their *odometry*
+world; the loop closer keeps a pose graph over all keyframes and publishes, after each
+optimisation, a ``map_from_odom`` transform per map segment and the corrected pose of every
+keyframe. The VIO window is never rebuilt.
+
+Graph: one node per keyframe; odometry edges between consecutive keyframes of one segment (from
+their best known odometry poses, refreshed with :meth:`LoopCloser.update_odometry`); loop edges
+(robust, GNC by default) between verified revisits. Segments stay separate components until a
+loop links them; each optimisation covers the component of the new loop, with its oldest
+keyframe fixed.
+
+Guards against perceptual aliasing (identical textures in different places), in order:
+BoW temporal consistency (``LoopDetector``), PnP inliers and inlier ratio, a *plausibility gate*
+(the loop may move the query keyframe by no more than the drift the odometry could have
+accumulated since the candidate: ``gate_base + gate_ratio * path length``), a second agreeing
+loop for links between segments (no odometry there to gate with), and the robust kernel.
+
+``LoopCloser`` is a plain class (no threads): ``add_keyframe`` returns a :class:`LoopEvent`;
+with ``inline_pgo`` it optimises at once and the event carries the correction; otherwise the
+caller runs :func:`run_pgo` on ``closer.pgo_request()`` (e.g. in a worker process) and hands the
+outcome back with :meth:`LoopCloser.apply_pgo`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from slam.calibration import Calibration
+from slam.geometry import invert_transform, so3_log
+from slam.loop.config import LoopClosureConfig
+from slam.loop.database import LoopDetector, LoopDetectorParams
+from slam.loop.store import KeyframeDescription, KeyframeStore, describe_keyframe
+from slam.loop.verify import LoopVerification, VerifyParams, verify_loop
+from slam.loop.vocabulary import Vocabulary, load_default_vocabulary
+from slam.messages import Keyframe, LoopCorrection
+from slam.posegraph import PgoOptions, PoseEdge, PoseGraph, information_from_sigmas, optimize
+
+
+def _angle_rad(rotation: np.ndarray) -> float:
+    return float(np.linalg.norm(so3_log(rotation)))
+
+
+@dataclass(frozen=True, eq=False)
+class PgoRequest:
+    """A picklable pose-graph problem (for a worker process)."""
+
+    request_id: int
+    world_from_node: dict[int, np.ndarray]
+    odometry_edges: tuple[PoseEdge, ...]
+    loop_edges: tuple[PoseEdge, ...]
+    loop_ids: tuple[int, ...]
+    fixed_id: int
+    robust: str
+
+
+@dataclass(frozen=True, eq=False)
+class PgoOutcome:
+    """The optimised poses, which loops survived, and the cost."""
+
+    request_id: int
+    world_from_node: dict[int, np.ndarray]
+    loop_ids: tuple[int, ...]
+    loop_inliers: np.ndarray  # (len(loop_ids),) bool
+    seconds: float
+    initial_chi2: float
+    final_chi2: float
+    iterations: int
+
+
+def run_pgo(req: PgoRequest) -> PgoOutcome:
+    """Optimise a :class:`PgoRequest` (module-level: runs in a spawned worker process)."""
+    graph = PoseGraph.from_poses(req.world_from_node, req.odometry_edges, req.loop_edges)
+    res = optimize(
+        graph,
+        PgoOptions(robust=req.robust, chordal_init=False, fixed_id=req.fixed_id),  # type: ignore[arg-type]
+    )
+    return PgoOutcome(
+        request_id=req.request_id,
+        world_from_node=res.graph.world_from_node(),
+        loop_ids=req.loop_ids,
+        loop_inliers=np.asarray(res.loop_inliers, dtype=bool),
+        seconds=res.seconds,
+        initial_chi2=res.initial_chi2,
+        final_chi2=res.final_chi2,
+        iterations=res.iterations,
+    )
+
+
+@dataclass
+class LoopRecord:
+    """One loop edge in the graph."""
+
+    loop_id: int
+    query_kf_id: int
+    match_kf_id: int
+    match_body_from_query_body: np.ndarray
+    inliers: int
+    t_ns: int
+    active: bool = True  # False once PGO's robust kernel rejected it
+
+
+@dataclass(frozen=True, eq=False)
+class LoopEvent:
+    """What happened to one keyframe's loop query (None from add_keyframe when nothing).
+
+    ``status``: ``rejected`` (verification or a gate failed; see ``reason``), ``pending``
+    (verified, waiting for a confirming loop), ``accepted`` (edge added to the graph).
+    """
+
+    t_ns: int
+    query_kf_id: int
+    match_kf_id: int
+    status: str
+    reason: str
+    inliers: int
+    loop_ids: tuple[int, ...] = ()
+    correction: LoopCorrection | None = None
+
+
+@dataclass
+class LoopStats:
+    keyframes: int = 0
+    detections: int = 0
+    verified: int = 0
+    accepted: int = 0
+    rejected_verification: int = 0
+    rejected_gate: int = 0
+    rejected_unconfirmed: int = 0
+    rejected_by_pgo: int = 0
+    pgo_runs: int = 0
+    pgo_ms: list[float] = field(default_factory=list)
+    describe_ms: list[float] = field(default_factory=list)
+    query_ms: list[float] = field(default_factory=list)
+    verify_ms: list[float] = field(default_factory=list)
+
+    def summary(self) -> dict[str, object]:
+        def pct(values: list[float]) -> dict[str, float]:
+            if not values:
+                return {"count": 0}
+            a = np.asarray(values)
+            return {
+                "count": len(a),
+                "p50_ms": float(np.percentile(a, 50)),
+                "p99_ms": float(np.percentile(a, 99)),
+                "max_ms": float(a.max()),
+            }
+
+        return {
+            "keyframes": self.keyframes,
+            "detections": self.detections,
+            "verified": self.verified,
+            "accepted": self.accepted,
+            "rejected_verification": self.rejected_verification,
+            "rejected_gate": self.rejected_gate,
+            "rejected_unconfirmed": self.rejected_unconfirmed,
+            "rejected_by_pgo": self.rejected_by_pgo,
+            "pgo_runs": self.pgo_runs,
+            "pgo": pct(self.pgo_ms),
+            "describe": pct(self.describe_ms),
+            "query": pct(self.query_ms),
+            "verify": pct(self.verify_ms),
+        }
+
+
+@dataclass
+class _Pending:
+    """A verified loop between segments waiting for a second, agreeing one."""
+
+    record: LoopRecord
+    query_seg: int
+    match_seg: int
+    map_from_query_map: np.ndarray  # the alignment the loop implies
+    kf_count: int
+
+
+class LoopCloser:
+    """Loop detection, verification and pose-graph correction over all keyframes."""
+
+    def __init__(
+        self,
+        calib: Calibration,
+        cfg: LoopClosureConfig | None = None,
+        vocabulary: Vocabulary | None = None,
+        inline_pgo: bool = True,
+        store: KeyframeStore | None = None,
+    ):
+        self.cfg = cfg or LoopClosureConfig()
+        self.calib = calib
+        self.intr = calib.cameras[0].intrinsics
+        self.K = self.intr.K
+        self.body_from_cam0 = calib.cameras[0].body_from_cam
+        self.cam0_from_body = invert_transform(self.body_from_cam0)
+        self.vocab = vocabulary or load_default_vocabulary()
+        self.inline_pgo = inline_pgo
+        self.store = store or KeyframeStore()
+        c = self.cfg
+        self.detector = LoopDetector(
+            params=LoopDetectorParams(
+                min_normalised_score=c.min_normalised_score,
+                exclude_recent=c.exclude_recent_keyframes,
+                exclude_recent_ns=int(c.exclude_recent_s * 1e9),
+                min_eligible=c.min_eligible_keyframes,
+                min_consecutive=c.min_consecutive,
+            ),
+            database=self.store.database,
+        )
+        self.verify_params = VerifyParams(
+            min_inliers=c.min_inliers,
+            min_inlier_ratio=c.min_inlier_ratio,
+            reprojection_px=c.reprojection_px,
+        )
+        self.orb = cv2.ORB_create()
+        self.stats = LoopStats()
+        # graph state
+        self.kf_ids: list[int] = []
+        self.segment_of: dict[int, int] = {}
+        self.t_ns_of: dict[int, int] = {}
+        self.odom: dict[int, np.ndarray] = {}
+        self.optimised: dict[int, np.ndarray] = {}  # map_from_body from the latest PGO
+        self.map_from_odom: dict[int, np.ndarray] = {}  # per segment
+        self.path_m: dict[int, float] = {}  # odometry path length from the segment start
+        self.last_of_segment: dict[int, int] = {}
+        self.prev_in_segment: dict[int, int] = {}
+        self.component: dict[int, int] = {}  # segment -> root segment (union-find)
+        self.first_kf_of_landmark: dict[int, int] = {}
+        self.loops: list[LoopRecord] = []
+        self.map_generation = 0
+        self.needs_pgo = False
+        self._request_id = 0
+        self._last_accept_count = -(10**9)
+        self._pending: _Pending | None = None
+        self._last_correction: LoopCorrection | None = None
+
+    # ------------------------------------------------------------------ poses
+    def _root(self, seg: int) -> int:
+        while self.component.get(seg, seg) != seg:
+            seg = self.component[seg]
+        return seg
+
+    def corrected_pose(self, kf_id: int) -> np.ndarray:
+        """map_from_body of a keyframe: its PGO pose, else its odometry pose mapped through its
+        segment's ``map_from_odom``."""
+        pose = self.optimised.get(kf_id)
+        if pose is not None:
+            return pose
+        return self.map_from_odom.get(self.segment_of[kf_id], np.eye(4)) @ self.odom[kf_id]
+
+    def corrected_poses(self) -> dict[int, np.ndarray]:
+        return {k: self.corrected_pose(k) for k in self.kf_ids}
+
+    def keyframe_map_from_odom(self) -> dict[int, np.ndarray]:
+        """Per keyframe: corrected pose @ inverse(odometry pose) (the correction to apply to
+        frames tracked after it)."""
+        return {k: self.corrected_pose(k) @ invert_transform(self.odom[k]) for k in self.kf_ids}
+
+    def update_odometry(self, kf_id: int, world_from_body: np.ndarray) -> None:
+        """Refresh a keyframe's odometry pose (e.g. the back end optimised it)."""
+        if kf_id in self.odom:
+            self.odom[kf_id] = np.array(world_from_body, dtype=float)
+            self.store.set_odometry(kf_id, world_from_body)
+
+    # ------------------------------------------------------------------ main entry
+    def add_keyframe(self, kf: Keyframe, world_from_body_odom: np.ndarray) -> LoopEvent | None:
+        """Describe, query, verify, gate; add the keyframe to the graph (and optimise inline
+        when ``inline_pgo`` and a loop was accepted)."""
+        t0 = time.perf_counter()
+        desc = describe_keyframe(
+            kf,
+            kf.world_from_body_vo,
+            self.body_from_cam0,
+            self.vocab,
+            self.intr,
+            self.cfg.max_orb_features,
+            self.orb,
+        )
+        self.stats.describe_ms.append((time.perf_counter() - t0) * 1e3)
+        self._add_node(kf, world_from_body_odom)
+        self.store.add_description(desc, world_from_body_odom)
+        covisible_from = min(
+            (self.first_kf_of_landmark.get(int(i), kf.keyframe_id) for i in desc.landmark_ids),
+            default=kf.keyframe_id,
+        )
+        for lid in np.asarray(kf.landmark_ids).tolist():
+            self.first_kf_of_landmark.setdefault(int(lid), kf.keyframe_id)
+        seg = kf.segment_id
+
+        def exclude(other: int) -> bool:  # covisible: same segment, shares tracked landmarks
+            return self.segment_of.get(other) == seg and other >= covisible_from
+
+        t1 = time.perf_counter()
+        with self.store.lock:
+            detection = self.detector.process(kf.keyframe_id, kf.t_ns, desc.bow, exclude=exclude)
+        self.stats.query_ms.append((time.perf_counter() - t1) * 1e3)
+        self.stats.keyframes += 1
+        if detection is None:
+            return None
+        self.stats.detections += 1
+        if self.stats.keyframes - self._last_accept_count <= self.cfg.min_keyframes_between_loops:
+            return None
+        candidates = [detection.match_kf_id] + [
+            k for k in detection.island_kf_ids if k != detection.match_kf_id
+        ]
+        event = self._verify_and_gate(kf, desc, candidates[: self.cfg.candidates_to_verify])
+        if event.status == "accepted" and self.inline_pgo:
+            outcome = run_pgo(self.pgo_request())
+            correction = self.apply_pgo(outcome)
+            event = LoopEvent(**{**event.__dict__, "correction": correction})
+        return event
+
+    def _add_node(self, kf: Keyframe, world_from_body_odom: np.ndarray) -> None:
+        k, seg = int(kf.keyframe_id), int(kf.segment_id)
+        pose = np.array(world_from_body_odom, dtype=float)
+        self.kf_ids.append(k)
+        self.segment_of[k] = seg
+        self.t_ns_of[k] = int(kf.t_ns)
+        self.odom[k] = pose
+        self.component.setdefault(seg, seg)
+        prev = self.last_of_segment.get(seg)
+        if prev is not None:
+            self.prev_in_segment[k] = prev
+            step = float(np.linalg.norm(pose[:3, 3] - self.odom[prev][:3, 3]))
+            self.path_m[k] = self.path_m[prev] + step
+        else:
+            self.path_m[k] = 0.0
+        self.last_of_segment[seg] = k
+
+    # ------------------------------------------------------------------ verification
+    def _verify(
+        self, desc: KeyframeDescription, candidates: list[int]
+    ) -> tuple[int, LoopVerification | None]:
+        best: tuple[int, LoopVerification | None] = (-1, None)
+        for cand in candidates:
+            if not self.store.has(cand):
+                continue
+            c = self.store.description(cand)
+            res = verify_loop(
+                desc.query_xy_undist,
+                desc.query_desc,
+                c.landmark_desc,
+                c.landmark_points_cam,
+                self.K,
+                None,
+                self.verify_params,
+            )
+            if res is not None and (best[1] is None or res.num_inliers > best[1].num_inliers):
+                best = (cand, res)
+        return best
+
+    def _verify_and_gate(
+        self, kf: Keyframe, desc: KeyframeDescription, candidates: list[int]
+    ) -> LoopEvent:
+        q = kf.keyframe_id
+        t0 = time.perf_counter()
+        match, ver = self._verify(desc, candidates)
+        self.stats.verify_ms.append((time.perf_counter() - t0) * 1e3)
+        if ver is None:
+            self.stats.rejected_verification += 1
+            return LoopEvent(kf.t_ns, q, candidates[0], "rejected", "verification failed", 0)
+        self.stats.verified += 1
+        measured = self.body_from_cam0 @ ver.candidate_cam_from_query_cam @ self.cam0_from_body
+        record = LoopRecord(
+            loop_id=-1,  # numbered when accepted
+            query_kf_id=q,
+            match_kf_id=match,
+            match_body_from_query_body=measured,
+            inliers=ver.num_inliers,
+            t_ns=kf.t_ns,
+        )
+        implied_query = self.corrected_pose(match) @ measured
+        current_query = self.corrected_pose(q)
+        jump_m = float(np.linalg.norm(implied_query[:3, 3] - current_query[:3, 3]))
+        jump_deg = float(np.degrees(_angle_rad(current_query[:3, :3].T @ implied_query[:3, :3])))
+        q_seg, m_seg = self.segment_of[q], self.segment_of[match]
+        c = self.cfg
+        if q_seg == m_seg:
+            path = self.path_m[q] - self.path_m[match]
+            max_m = c.gate_base_m + c.gate_ratio * path
+            max_deg = c.gate_base_deg + c.gate_deg_per_m * path
+            if jump_m > max_m or jump_deg > max_deg:
+                self.stats.rejected_gate += 1
+                return LoopEvent(
+                    kf.t_ns,
+                    q,
+                    match,
+                    "rejected",
+                    f"implausible correction {jump_m:.2f} m / {jump_deg:.1f} deg after "
+                    f"{path:.1f} m of path (max {max_m:.2f} m / {max_deg:.1f} deg)",
+                    ver.num_inliers,
+                )
+            return self._accept([record], kf.t_ns)
+        # Between segments: no odometry to gate with; a second agreeing loop confirms.
+        alignment = implied_query @ invert_transform(current_query)
+        pend = self._pending
+        if (
+            pend is not None
+            and {pend.query_seg, pend.match_seg} == {q_seg, m_seg}
+            and self.stats.keyframes - pend.kf_count <= c.confirm_within_keyframes
+        ):
+            if pend.query_seg != q_seg:
+                alignment = invert_transform(alignment)
+            diff = invert_transform(pend.map_from_query_map) @ alignment
+            if (
+                np.linalg.norm(diff[:3, 3]) <= c.confirm_translation_m
+                and np.degrees(_angle_rad(diff[:3, :3])) <= c.confirm_rotation_deg
+            ):
+                self._pending = None
+                return self._accept([pend.record, record], kf.t_ns)
+            self.stats.rejected_unconfirmed += 1
+        elif pend is not None:
+            self.stats.rejected_unconfirmed += 1
+        self._pending = _Pending(record, q_seg, m_seg, alignment, self.stats.keyframes)
+        return LoopEvent(
+            kf.t_ns, q, match, "pending", "waiting for a confirming loop", ver.num_inliers
+        )
+
+    def add_loop_constraint(
+        self,
+        query_kf_id: int,
+        match_kf_id: int,
+        match_body_from_query_body: np.ndarray,
+        inliers: int = 0,
+    ) -> LoopEvent:
+        """Add a loop edge without verification or gates (external constraints, tests); the
+        robust kernel is then the only guard."""
+        record = LoopRecord(
+            len(self.loops),
+            query_kf_id,
+            match_kf_id,
+            np.array(match_body_from_query_body, dtype=float),
+            inliers,
+            self.t_ns_of[query_kf_id],
+        )
+        event = self._accept([record], record.t_ns, count=False)
+        if self.inline_pgo:
+            correction = self.apply_pgo(run_pgo(self.pgo_request()))
+            event = LoopEvent(**{**event.__dict__, "correction": correction})
+        return event
+
+    def _accept(self, records: list[LoopRecord], t_ns: int, count: bool = True) -> LoopEvent:
+        for rec in records:
+            rec.loop_id = len(self.loops)
+            a, b = (
+                self._root(self.segment_of[rec.query_kf_id]),
+                self._root(self.segment_of[rec.match_kf_id]),
+            )
+            if a != b:
+                self._merge_components(rec)
+            self.loops.append(rec)
+            if count:
+                self.stats.accepted += 1
+        self._last_accept_count = self.stats.keyframes
+        self.needs_pgo = True
+        last = records[-1]
+        return LoopEvent(
+            t_ns,
+            last.query_kf_id,
+            last.match_kf_id,
+            "accepted",
+            "",
+            last.inliers,
+            tuple(r.loop_id for r in records),
+        )
+
+    def _merge_components(self, rec: LoopRecord) -> None:
+        """Link two components: move the newer one onto the older by the loop's alignment so
+        the optimiser starts close to the answer."""
+        q_root = self._root(self.segment_of[rec.query_kf_id])
+        m_root = self._root(self.segment_of[rec.match_kf_id])
+        implied_query = self.corrected_pose(rec.match_kf_id) @ rec.match_body_from_query_body
+        # alignment maps the query component's map frame onto the match component's
+        align = implied_query @ invert_transform(self.corrected_pose(rec.query_kf_id))
+        older_is_match = min(self._members(m_root)) < min(self._members(q_root))
+        moved_root, kept_root = (q_root, m_root) if older_is_match else (m_root, q_root)
+        if not older_is_match:
+            align = invert_transform(align)
+        for seg in [s for s in self.component if self._root(s) == moved_root]:
+            self.map_from_odom[seg] = align @ self.map_from_odom.get(seg, np.eye(4))
+        for k in self.kf_ids:
+            if k in self.optimised and self._root(self.segment_of[k]) == moved_root:
+                self.optimised[k] = align @ self.optimised[k]
+        self.component[moved_root] = kept_root
+
+    def _members(self, root: int) -> list[int]:
+        return [k for k in self.kf_ids if self._root(self.segment_of[k]) == root]
+
+    # ------------------------------------------------------------------ optimisation
+    def pgo_request(self) -> PgoRequest:
+        """The pose graph of the component holding the newest accepted loop."""
+        c = self.cfg
+        active = [r for r in self.loops if r.active]
+        if not active:
+            raise ValueError("no loop to optimise")
+        root = self._root(self.segment_of[active[-1].query_kf_id])
+        nodes = self._members(root)
+        node_set = set(nodes)
+        poses = {k: self.corrected_pose(k) for k in nodes}
+        odo: list[PoseEdge] = []
+        for k in nodes:
+            prev = self.prev_in_segment.get(k)
+            if prev is None:
+                continue
+            rel = invert_transform(self.odom[prev]) @ self.odom[k]
+            length = float(np.linalg.norm(rel[:3, 3]))
+            sigma_m = c.odom_sigma_m + c.odom_sigma_ratio * length
+            sigma_rad = c.odom_sigma_rad + 0.01 * _angle_rad(rel[:3, :3])
+            odo.append(PoseEdge(prev, k, rel, information_from_sigmas(sigma_m, sigma_rad)))
+        loop_info = information_from_sigmas(c.loop_sigma_m, c.loop_sigma_rad)
+        loops = [r for r in active if r.query_kf_id in node_set and r.match_kf_id in node_set]
+        self._request_id += 1
+        self.needs_pgo = False
+        return PgoRequest(
+            request_id=self._request_id,
+            world_from_node=poses,
+            odometry_edges=tuple(odo),
+            loop_edges=tuple(
+                PoseEdge(r.match_kf_id, r.query_kf_id, r.match_body_from_query_body, loop_info)
+                for r in loops
+            ),
+            loop_ids=tuple(r.loop_id for r in loops),
+            fixed_id=min(nodes),
+            robust=c.robust,
+        )
+
+    def apply_pgo(self, outcome: PgoOutcome) -> LoopCorrection:
+        """Take an optimisation's result: new keyframe poses, per-segment ``map_from_odom``
+        (from each segment's newest optimised keyframe), loops the kernel rejected switched
+        off. Keyframes added since the request follow their segment's new ``map_from_odom``."""
+        self.stats.pgo_runs += 1
+        self.stats.pgo_ms.append(outcome.seconds * 1e3)
+        by_id = {r.loop_id: r for r in self.loops}
+        for lid, ok in zip(outcome.loop_ids, outcome.loop_inliers.tolist(), strict=True):
+            if not ok and by_id[lid].active:
+                by_id[lid].active = False
+                self.stats.rejected_by_pgo += 1
+        newest: dict[int, int] = {}
+        for k, pose in outcome.world_from_node.items():
+            self.optimised[k] = np.array(pose, dtype=float)
+            seg = self.segment_of[k]
+            if k > newest.get(seg, -1):
+                newest[seg] = k
+        for seg, k in newest.items():
+            self.map_from_odom[seg] = self.optimised[k] @ invert_transform(self.odom[k])
+        self.map_generation += 1
+        self.store.set_corrected(self.corrected_poses())
+        last = max((r for r in self.loops if r.active), key=lambda r: r.loop_id, default=None)
+        correction = LoopCorrection(
+            t_ns=self.t_ns_of[self.kf_ids[-1]],
+            loop_id=-1 if last is None else last.loop_id,
+            query_keyframe_id=-1 if last is None else last.query_kf_id,
+            match_keyframe_id=-1 if last is None else last.match_kf_id,
+            inliers=0 if last is None else last.inliers,
+            map_generation=self.map_generation,
+            map_from_odom={s: m.copy() for s, m in self.map_from_odom.items()},
+            corrected_keyframe_poses=self.corrected_poses(),
+        )
+        self._last_correction = correction
+        return correction
+
+    @property
+    def last_correction(self) -> LoopCorrection | None:
+        return self._last_correction
+
+    def loop_edges(self) -> list[LoopRecord]:
+        return list(self.loops)
+
+
+def loop_closed_poses(
+    frame_t_ns: np.ndarray,
+    frame_segment_ids: np.ndarray,
+    frame_world_from_body: np.ndarray,
+    keyframe_t_ns: np.ndarray,
+    keyframe_segment_ids: np.ndarray,
+    keyframe_map_from_odom: np.ndarray,
+) -> np.ndarray:
+    """Map every frame's odometry pose through the correction of the latest keyframe of its
+    segment at or before it (frames before their segment's first keyframe use that one).
+
+    Arrays: frames (N,), (N,), (N, 4, 4); keyframes (M,), (M,), (M, 4, 4) correction =
+    corrected keyframe pose @ inverse(its odometry pose). Returns (N, 4, 4).
+    """
+    out = np.array(frame_world_from_body, dtype=float, copy=True)
+    kt = np.asarray(keyframe_t_ns, dtype=np.int64)
+    ks = np.asarray(keyframe_segment_ids)
+    for seg in np.unique(frame_segment_ids):
+        fm = np.flatnonzero(frame_segment_ids == seg)
+        km = np.flatnonzero(ks == seg)
+        if not len(km):
+            continue
+        order = km[np.argsort(kt[km], kind="stable")]
+        pos = np.searchsorted(kt[order], np.asarray(frame_t_ns)[fm], side="right") - 1
+        pos = np.clip(pos, 0, len(order) - 1)
+        out[fm] = np.asarray(keyframe_map_from_odom)[order[pos]] @ out[fm]
+    return out

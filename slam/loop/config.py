@@ -1,0 +1,70 @@
+"""Configuration of loop closure and relocalisation (nest under ``SlamConfig`` as ``loop``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class LoopClosureConfig:
+    """Place recognition, geometric verification, plausibility gates and pose-graph weights."""
+
+    max_orb_features: int = 600
+    """ORB keypoints per keyframe image for the BoW vector and the query side of PnP."""
+    exclude_recent_s: float = 15.0
+    """Never match keyframes of the last this many seconds (same place, not a loop)."""
+    exclude_recent_keyframes: int = 10
+    """... nor the last this many keyframes."""
+    min_eligible_keyframes: int = 10
+    """No detection until this many keyframes are older than the excluded recent ones."""
+    min_consecutive: int = 3
+    """Temporal consistency: consecutive keyframe queries agreeing on the place before a loop
+    is verified."""
+    min_normalised_score: float = 0.3
+    """BoW score / score against the recent neighbours needed by a candidate."""
+    candidates_to_verify: int = 3
+    """Verify up to this many keyframes of the winning island (best score first)."""
+    min_inliers: int = 30
+    """PnP inliers needed to accept a loop."""
+    min_inlier_ratio: float = 0.35
+    """... making up at least this fraction of the descriptor matches."""
+    reprojection_px: float = 2.5
+    """PnP RANSAC inlier threshold, pixels."""
+    gate_base_m: float = 0.3
+    """Plausibility gate: a loop may move the query keyframe by at most gate_base_m +
+    gate_ratio * (odometry path length since the candidate) ..."""
+    gate_ratio: float = 0.05
+    """... (5% of the path: generous for VIO drift, far below aliased places metres apart)."""
+    gate_base_deg: float = 4.0
+    """... and rotate it by at most gate_base_deg + gate_deg_per_m * path length."""
+    gate_deg_per_m: float = 0.5
+    """Rotation drift allowance per metre of path, degrees."""
+    confirm_translation_m: float = 0.2
+    """Loops between different map segments (no odometry between them) need a second verified
+    loop whose implied alignment agrees within this translation ..."""
+    confirm_rotation_deg: float = 3.0
+    """... and this rotation."""
+    confirm_within_keyframes: int = 10
+    """The confirming loop must come within this many keyframes of the first."""
+    min_keyframes_between_loops: int = 5
+    """After an accepted loop, skip verification for this many keyframes (the next ones see
+    the same place and add little)."""
+    odom_sigma_m: float = 0.02
+    """Odometry edge translation sigma: odom_sigma_m + odom_sigma_ratio * edge length."""
+    odom_sigma_ratio: float = 0.02
+    """Odometry translation sigma per metre of edge length."""
+    odom_sigma_rad: float = 0.005
+    """Odometry edge rotation sigma: odom_sigma_rad + 0.01 * edge rotation angle."""
+    loop_sigma_m: float = 0.05
+    """Loop edge translation sigma, metres."""
+    loop_sigma_rad: float = 0.02
+    """Loop edge rotation sigma, radians."""
+    robust: str = "gnc"
+    """Robust treatment of loop edges in PGO: gnc (graduated non-convexity, truncated least
+    squares: outliers get weight 0), cauchy, huber or none."""
+    pgo_process: bool = True
+    """Run pose-graph optimisation in a worker process (GTSAM holds the GIL)."""
+    reloc_candidates: int = 3
+    """Relocalisation: verify up to this many best BoW hits."""
+    reloc_min_inliers: int = 25
+    """Relocalisation: PnP inliers needed."""

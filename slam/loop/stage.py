@@ -1,0 +1,189 @@
+"""The loop closer as a pipeline stage; pose-graph optimisation in a worker process.
+
+Consumes :class:`Keyframe` messages (after the back end, or beside it). Odometry poses come from
+a callable (``kf_id -> world_from_body or None``: back-end-optimised poses when available, else
+the keyframe's own ``world_from_body_vo``); the last few keyframes' poses are refreshed before
+each new one, since the back end keeps refining its window.
+
+GTSAM holds the GIL for a whole ``optimize()``, so in concurrent mode each pose-graph
+optimisation runs in a spawned worker process (one at a time; a loop accepted meanwhile is
+optimised right after). The result is applied under a lock from the executor's callback thread
+and published through ``on_correction`` and :attr:`latest`. Sequential mode optimises inline
+(deterministic).
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import Future, ProcessPoolExecutor
+from typing import Any
+
+import numpy as np
+
+from slam.calibration import Calibration
+from slam.loop.closer import LoopCloser, LoopEvent, PgoOutcome, run_pgo
+from slam.loop.config import LoopClosureConfig
+from slam.loop.relocaliser import Relocaliser
+from slam.loop.vocabulary import Vocabulary
+from slam.messages import Keyframe, LoopCorrection
+from slam.stage import Latest, Stage, StageError
+
+log = logging.getLogger(__name__)
+
+REFRESH_LAST_KEYFRAMES = 30  # odometry poses re-read per new keyframe (the back end's window)
+
+
+def _warm_up() -> bool:
+    """Import GTSAM in the worker before the first loop needs it."""
+    import slam.posegraph  # noqa: F401
+
+    return True
+
+
+class LoopClosureStage(Stage):
+    """Keyframes in, :class:`LoopCorrection` out (``on_correction`` and ``latest``)."""
+
+    def __init__(
+        self,
+        calib: Calibration,
+        cfg: LoopClosureConfig,
+        odometry_pose: Callable[[int], np.ndarray | None],
+        on_correction: Callable[[LoopCorrection], None],
+        threaded: bool,
+        vocabulary: Vocabulary | None = None,
+        queue_size: int = 64,
+    ):
+        super().__init__("loop", maxsize=queue_size, threaded=threaded)
+        self.cfg = cfg
+        self.closer = LoopCloser(calib, cfg, vocabulary, inline_pgo=False)
+        self.relocaliser = Relocaliser(calib, self.closer.store, cfg, self.closer.vocab)
+        self.odometry_pose = odometry_pose
+        self.on_correction = on_correction
+        self.latest = Latest()
+        self.events: list[LoopEvent] = []
+        self.use_process = cfg.pgo_process and threaded
+        self._lock = threading.RLock()
+        self._inflight: Future[PgoOutcome] | None = None
+        self._executor: ProcessPoolExecutor | None = None
+        if self.use_process:
+            self._executor = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn"))
+            self._executor.submit(_warm_up)
+
+    # ------------------------------------------------------------------ stage
+    def process(self, msg: Any) -> None:
+        if not isinstance(msg, Keyframe):
+            return
+        with self._lock:
+            for k in self.closer.kf_ids[-REFRESH_LAST_KEYFRAMES:]:
+                pose = self.odometry_pose(k)
+                if pose is not None:
+                    self.closer.update_odometry(k, pose)
+            pose = self.odometry_pose(msg.keyframe_id)
+            odom = msg.world_from_body_vo if pose is None else pose
+            event = self.closer.add_keyframe(msg, odom)
+            if event is not None:
+                self.events.append(event)
+                log.info(
+                    "loop %s: keyframe %d -> %d (%d inliers) %s",
+                    event.status,
+                    event.query_kf_id,
+                    event.match_kf_id,
+                    event.inliers,
+                    event.reason,
+                )
+            self._maybe_submit()
+
+    def _maybe_submit(self) -> None:
+        """Start an optimisation when a loop waits and none runs (call under the lock)."""
+        if not self.closer.needs_pgo or self._inflight is not None:
+            return
+        request = self.closer.pgo_request()
+        if self._executor is None:
+            self._publish(self.closer.apply_pgo(run_pgo(request)))
+            return
+        future = self._executor.submit(run_pgo, request)
+        self._inflight = future
+        future.add_done_callback(self._done)
+
+    def _done(self, future: Future[PgoOutcome]) -> None:
+        try:
+            outcome = future.result()
+        except Exception as exc:  # reported with the stage's name
+            self.error = StageError(self.name, exc, "")
+            log.error("%s", self.error)
+            with self._lock:
+                self._inflight = None
+            return
+        with self._lock:
+            self._inflight = None
+            correction = self.closer.apply_pgo(outcome)
+            self._maybe_submit()
+        self._publish(correction)
+
+    def _publish(self, correction: LoopCorrection) -> None:
+        self.latest.set(correction)
+        self.on_correction(correction)
+
+    def on_end(self) -> None:
+        """Wait for the running (and any queued) optimisation, then stop the worker."""
+        while True:
+            with self._lock:
+                future = self._inflight
+            if future is None:
+                break
+            try:
+                future.result(timeout=300)
+            except Exception:
+                break
+            while self._inflight is future:  # its callback (which may queue the next) runs now
+                time.sleep(0.005)
+        if self._executor is not None:
+            self._executor.shutdown(wait=True, cancel_futures=True)
+
+    def abort(self) -> None:
+        super().abort()
+        if self._executor is not None:
+            self._executor.shutdown(wait=False, cancel_futures=True)
+
+    # ------------------------------------------------------------------ outputs
+    def keyframe_corrections(self) -> dict[int, np.ndarray]:
+        """Per keyframe id: corrected pose @ inverse(odometry pose) (identity before any loop)."""
+        with self._lock:
+            return self.closer.keyframe_map_from_odom()
+
+    def corrected_keyframe_poses(self) -> dict[int, np.ndarray]:
+        with self._lock:
+            return self.closer.corrected_poses()
+
+    def stats(self) -> dict[str, Any]:
+        with self._lock:
+            out: dict[str, Any] = dict(self.closer.stats.summary())
+            out["mode"] = "process" if self.use_process else "inline"
+            out["loops"] = [
+                {
+                    "loop_id": r.loop_id,
+                    "query_kf": r.query_kf_id,
+                    "match_kf": r.match_kf_id,
+                    "inliers": r.inliers,
+                    "t_ns": r.t_ns,
+                    "active": r.active,
+                }
+                for r in self.closer.loops
+            ]
+            out["rejections"] = [
+                {"query_kf": e.query_kf_id, "match_kf": e.match_kf_id, "reason": e.reason}
+                for e in self.events
+                if e.status == "rejected"
+            ][:50]
+            out["relocalisation"] = {
+                "calls": self.relocaliser.calls,
+                "successes": self.relocaliser.successes,
+                "p50_ms": float(np.median(self.relocaliser.elapsed_ms))
+                if self.relocaliser.elapsed_ms
+                else None,
+            }
+        return out
