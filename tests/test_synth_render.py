@@ -102,6 +102,7 @@ def test_depth_matches_analytic_ray_plane_distance(kind: str) -> None:
         world_from_cam = _body_pose(pos, 2.1 * k, 0.2, 0.1) @ cam.body_from_cam
         depth = renderer.render(world_from_cam, with_depth=True).depth_m
         assert depth is not None and depth.dtype == np.float32
+        assert np.array_equal(renderer.render_depth(world_from_cam), depth)
         uv = np.stack([rng.integers(0, 752, 2000), rng.integers(0, 480, 2000)], 1)
         xy = rays[uv[:, 1], uv[:, 0]]  # exact inverse of project (tested above)
         expected = _analytic_depth(scene, world_from_cam, xy)

@@ -183,10 +183,7 @@ class SyntheticSequence(Sequence):
     def depth(self, index: int, cam: int = 0) -> np.ndarray:
         """Ground-truth depth (H, W) float32: z in the camera frame, metres (every pixel hits
         a surface; blackout does not affect depth)."""
-        r = self.renderer.cameras[cam]
-        out = r.render(self.world_from_cam(index, cam), with_depth=True)
-        assert out.depth_m is not None
-        return out.depth_m
+        return self.renderer.cameras[cam].render_depth(self.world_from_cam(index, cam))
 
     def is_blacked_out(self, index: int) -> bool:
         if self.options.blackout is None:

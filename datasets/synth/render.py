@@ -135,13 +135,23 @@ class CameraRenderer:
             self._render_band(world_from_cam, rects, r0, r1, image, depth)
         return RenderOutput(image=image, depth_m=depth)
 
+    def render_depth(self, world_from_cam: np.ndarray) -> np.ndarray:
+        """Depth only (H, W) float32, z in metres: no texture sampling (about 2x faster)."""
+        cam_from_world = np.linalg.inv(world_from_cam)
+        rects = [self._box_pixel_rect(b, cam_from_world) for b in range(len(self.scene.boxes))]
+        depth = np.empty((self.height, self.width), np.float32)
+        for r0 in range(0, self.height, BAND_ROWS):
+            r1 = min(r0 + BAND_ROWS, self.height)
+            self._render_band(world_from_cam, rects, r0, r1, None, depth)
+        return depth
+
     def _render_band(
         self,
         world_from_cam: np.ndarray,
         rects: list[tuple[int, int, int, int] | None],
         r0: int,
         r1: int,
-        image_out: np.ndarray,
+        image_out: np.ndarray | None,
         depth_out: np.ndarray | None,
     ) -> None:
         scene = self.scene
@@ -225,6 +235,10 @@ class CameraRenderer:
             fid += 6 + 6 * b
             f_s = face[a0:a1, c0:c1]
             f_s += hit * (fid - f_s)
+        if depth_out is not None:
+            depth_out[r0:r1] = t_best
+        if image_out is None:
+            return
 
         # hit points -> atlas coordinates (level 0): u along the first in-plane axis
         # (y for x-walls, else x), v down along the second (z for walls, y for floor/ceiling)
@@ -264,8 +278,6 @@ class CameraRenderer:
         level *= f32(0.5)
         np.minimum(level, f32(len(scene.atlas_levels) - 1), out=level)
         image_out[r0:r1] = self._sample(map_x, map_y, level)
-        if depth_out is not None:
-            depth_out[r0:r1] = t_best
 
     def _sample(self, map_x: np.ndarray, map_y: np.ndarray, level: np.ndarray) -> np.ndarray:
         """Trilinear sampling: bilinear at each mip level, tent-weighted by ``level``."""
