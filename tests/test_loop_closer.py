@@ -203,3 +203,34 @@ def test_log_loop_correction_writes_rerun(closed, tmp_path) -> None:
     rec.flush()
     rec.disconnect()
     assert path.stat().st_size > 1000
+
+
+def test_second_segment_is_merged_by_two_agreeing_loops(loop_scene, vocab) -> None:
+    """Keyframes 40+ form segment 1 whose odometry frame is offset by 1 m / 29 deg (as after
+    an unrecovered tracking loss); the revisit links it to segment 0 once a second loop agrees."""
+    import dataclasses
+
+    seq, kfs = loop_scene
+    off = make_transform(so3_exp(np.array([0.0, 0.0, 0.5])), [1.0, -2.0, 0.3])
+    split = []
+    for s in kfs:
+        k = s.keyframe
+        if k.keyframe_id >= 40:
+            k = dataclasses.replace(
+                k,
+                segment_id=1,
+                world_from_body_vo=off @ k.world_from_body_vo,
+                points_world_vo=k.points_world_vo @ off[:3, :3].T + off[:3, 3],
+            )
+            s = SyntheticKeyframe(k, off @ s.world_from_body_odom, s.world_from_body_true)
+        split.append(s)
+    closer, events = run_closer(seq, split, vocab)
+    assert [e.status for e in events if e.status != "rejected"][:2] == ["pending", "accepted"]
+    assert closer.stats.accepted == 2
+    assert closer._root(1) == closer._root(0)
+    truth = [s.world_from_body_true for s in split]
+    corrected = closer.corrected_poses()
+    before = ate_m([s.world_from_body_odom for s in split], truth)
+    after = ate_m([corrected[s.keyframe.keyframe_id] for s in split], truth)
+    assert before > 0.5 and after < 0.25, (before, after)
+    assert set(closer.last_correction.map_from_odom) == {0, 1}
