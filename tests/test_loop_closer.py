@@ -233,4 +233,5 @@ def test_second_segment_is_merged_by_two_agreeing_loops(loop_scene, vocab) -> No
     before = ate_m([s.world_from_body_odom for s in split], truth)
     after = ate_m([corrected[s.keyframe.keyframe_id] for s in split], truth)
     assert before > 0.5 and after < 0.25, (before, after)
-    assert set(closer.last_correction.map_from_odom) == {0, 1}
+    last = closer.last_correction
+    assert last is not None and set(last.map_from_odom) == {0, 1}
