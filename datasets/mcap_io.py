@@ -158,12 +158,21 @@ def write_sequence_mcap(
     *,
     progress: bool = True,
     chunk_size_bytes: int = CHUNK_SIZE_BYTES,
+    compression: str = "zstd",
 ) -> None:
     """Write any :class:`Sequence` as our self-contained ROS 2 MCAP file (atomically).
 
     ``chunk_size_bytes``: uncompressed size at which a chunk is closed (smaller = finer random
-    access and damage isolation, larger = slightly better compression).
+    access and damage isolation, larger = slightly better compression). ``compression``:
+    ``zstd`` (default, smallest), ``lz4`` (decodes several times faster) or ``none``.
     """
+    codecs = {
+        "zstd": CompressionType.ZSTD,
+        "lz4": CompressionType.LZ4,
+        "none": CompressionType.NONE,
+    }
+    if compression not in codecs:
+        raise ValueError(f"compression must be one of {sorted(codecs)}, got {compression!r}")
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     calib = seq.calibration
@@ -171,7 +180,7 @@ def write_sequence_mcap(
     fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=f".{out.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as fh:
-            writer = Writer(fh, chunk_size=chunk_size_bytes, compression=CompressionType.ZSTD)
+            writer = Writer(fh, chunk_size=chunk_size_bytes, compression=codecs[compression])
             writer.start(profile="ros2", library="pyvislam")
             writer.add_metadata(CALIBRATION_METADATA, {"json": json.dumps(calib.to_dict())})
             writer.add_metadata(

@@ -181,3 +181,15 @@ def test_vectorised_imu_decode_matches_single() -> None:
     for k, p in enumerate(payloads):
         t1, g1, a1 = cdr.decode_imu(p)
         assert t[k] == t1 and tuple(gyro[k]) == g1 and tuple(accel[k]) == a1
+
+
+@pytest.mark.parametrize("compression", ["lz4", "none"])
+def test_other_chunk_compressions(tmp_path: Path, compression: str) -> None:
+    seq = random_sequence(num_frames=6, seed=6)
+    path = tmp_path / f"{compression}.mcap"
+    write_sequence_mcap(seq, path, progress=False, compression=compression)
+    back = McapSequence(path)
+    assert back.warnings == []
+    for a, b in zip(back.iter_frames(), seq.iter_frames(), strict=True):
+        assert np.array_equal(a.left, b.left) and np.array_equal(a.right, b.right)
+    np.testing.assert_array_equal(back.imu().accel_m_s2, seq.imu().accel_m_s2)

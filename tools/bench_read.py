@@ -90,6 +90,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--keep", type=Path, help="write the MCAP here and keep it")
     ap.add_argument("--read", type=Path, help="only time reading this existing MCAP file")
+    ap.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd")
     ap.add_argument(
         "--source",
         choices=("auto", "synth", "textured"),
@@ -108,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
         with tempfile.TemporaryDirectory() as tmp:
             path = args.keep or Path(tmp) / "bench.mcap"
             t0 = time.perf_counter()
-            write_sequence_mcap(src, path, progress=False)
+            write_sequence_mcap(src, path, progress=False, compression=args.compression)
             t_write = time.perf_counter() - t0
             size_mb = path.stat().st_size / 1e6
             runs = [time_read(path) for _ in range(args.repeats)]

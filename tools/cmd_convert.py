@@ -35,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
     if not str(args.out).endswith(".mcap"):
         raise InputError(f"output {args.out} should end in .mcap")
     seq = open_from_args(args, positional="src")
-    write_sequence_mcap(seq, args.out, progress=not args.quiet)
+    write_sequence_mcap(seq, args.out, progress=not args.quiet, compression=args.compression)
     print(
         f"wrote {args.out}: {seq.num_frames} frames, {seq.num_imu} IMU samples, "
         f"{len(seq.ground_truth) if seq.ground_truth is not None else 0} ground-truth poses"
@@ -53,5 +53,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     add_sequence_args(p, positional="src")
     p.add_argument("out", metavar="OUT.mcap", help="output file")
+    p.add_argument(
+        "--compression",
+        choices=("zstd", "lz4", "none"),
+        default="zstd",
+        help="chunk compression: zstd (default, smallest file), lz4 (faster to read), none",
+    )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
