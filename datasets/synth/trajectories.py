@@ -194,11 +194,12 @@ def make_profile(name: str, moving_start: bool = False) -> ProfileMotion:
 
     - ``figure8``: slow figure-8 in the 8x6x3 m room (24 s per figure, <= ~0.9 m/s), looking
       around +x with +-1 rad of yaw.
-    - ``loop``: an ellipse (2.3 x 1.4 m) looking outwards, yaw +2 pi per lap; it revisits its
-      start pose exactly after 75 s of motion (t ~ 77 s with the still start).
+    - ``loop``: an ellipse (2.3 x 1.4 m) looking outwards, yaw +2 pi per lap, with small
+      0.3-0.5 Hz wobbles; it revisits its start pose exactly after 75 s of motion (t = 78 s
+      with the still start).
     - ``aggressive``: a fast figure-8 (7 s period, ~2.4 m/s, ~3 m/s^2, ~2.7 rad/s) with shakes.
     - ``hall``: an 11 x 3 m ellipse in the 30x10x3 m hall, one lap per 60 s (~48 m per lap),
-      looking forward-outward; 140 s default ~ 110 m of path.
+      looking forward-outward, with small wobbles; 140 s default ~ 110 m of path.
 
     ``moving_start``: no still start (the phase runs from t = 0); default: still for 2 s,
     then a 2 s smooth ramp to full speed.
@@ -222,12 +223,14 @@ def make_profile(name: str, moving_start: bool = False) -> ProfileMotion:
         w = two_pi / 75.0
         return ProfileMotion(
             name=name,
-            x=_sin((2.3, w, np.pi / 2), (0.12, 6 * w, 0.0), (0.12, 4 * w, 0.0)),
-            y=_sin((1.4, w, 0.0), (0.1, 5 * w, 0.4)),
-            z=_sin((0.2, 2 * w, 0.0), c0=1.4),
-            yaw=_sin((0.2, 3 * w, 0.0), (0.1, 7 * w, 1.0), c1=w),
-            pitch=_sin((0.06, 5 * w, 0.0), c0=0.1),
-            roll=_sin((0.05, 3 * w, 0.5)),
+            # slow lap + ~0.3-0.5 Hz wobbles (integer harmonics: the lap stays periodic) that
+            # excite the IMU like a hand-held / MAV sequence (~1.5 m/s^2, ~0.4 rad/s)
+            x=_sin((2.3, w, np.pi / 2), (0.12, 6 * w, 0.0), (0.12, 4 * w, 0.0), (0.1, 30 * w, 0.0)),
+            y=_sin((1.4, w, 0.0), (0.1, 5 * w, 0.4), (0.1, 23 * w, 0.5)),
+            z=_sin((0.2, 2 * w, 0.0), (0.07, 37 * w, 0.0), c0=1.4),
+            yaw=_sin((0.2, 3 * w, 0.0), (0.1, 7 * w, 1.0), (0.08, 19 * w, 0.0), c1=w),
+            pitch=_sin((0.06, 5 * w, 0.0), (0.05, 29 * w, 0.3), c0=0.1),
+            roll=_sin((0.05, 3 * w, 0.5), (0.05, 31 * w, 0.0)),
             warp=warp,
             default_duration_s=80.0,
         )
@@ -249,11 +252,11 @@ def make_profile(name: str, moving_start: bool = False) -> ProfileMotion:
         return ProfileMotion(
             name=name,
             x=_sin((11.0, w, np.pi / 2)),
-            y=_sin((3.0, w, 0.0), (0.3, 3 * w, 0.0)),
-            z=_sin((0.3, 2 * w, 0.0), c0=1.5),
-            yaw=_sin((0.15, 4 * w, 0.0), c0=np.pi / 2 - 0.6, c1=w),
-            pitch=_sin((0.05, 3 * w, 0.0), c0=0.08),
-            roll=_sin((0.04, 5 * w, 0.0)),
+            y=_sin((3.0, w, 0.0), (0.3, 3 * w, 0.0), (0.1, 25 * w, 0.0)),
+            z=_sin((0.3, 2 * w, 0.0), (0.08, 31 * w, 0.4), c0=1.5),
+            yaw=_sin((0.15, 4 * w, 0.0), (0.06, 21 * w, 0.0), c0=np.pi / 2 - 0.6, c1=w),
+            pitch=_sin((0.05, 3 * w, 0.0), (0.04, 27 * w, 0.0), c0=0.08),
+            roll=_sin((0.04, 5 * w, 0.0), (0.04, 33 * w, 0.7)),
             warp=warp,
             kind="hall",
             default_duration_s=140.0,
