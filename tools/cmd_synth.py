@@ -20,10 +20,10 @@ random walk with EuRoC's ADIS16448 figures (--no-imu-noise for exact readings). 
 still for the first 2 s (static IMU initialisation works), unless --moving-start.
 
 profiles (default duration):
-  figure8     slow figure-8 in the room, ~0.9 m/s (40 s)
+  figure8     slow figure-8 in the room, <= 0.8 m/s (40 s)
   loop        an ellipse looking outwards; revisits its start pose at t = 78 s (80 s)
-  aggressive  fast figure-8 with shakes: ~2.4 m/s, ~2.7 rad/s (30 s)
-  hall        11 x 3 m ellipse in the hall, ~110 m of path (140 s)
+  aggressive  fast figure-8 with shakes: <= 2.5 m/s, 4 m/s^2, 3 rad/s (30 s)
+  hall        11 x 3 m ellipse in the hall, ~117 m of path (140 s)
   --from-trajectory FILE  any TUM or EuRoC ground-truth trajectory (cubic splines), in a room
                           fitted around it; --imu-csv adds its real EuRoC IMU stream instead
                           of the simulated one

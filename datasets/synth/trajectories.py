@@ -192,14 +192,14 @@ PROFILES = ("figure8", "loop", "aggressive", "hall")
 def make_profile(name: str, moving_start: bool = False) -> ProfileMotion:
     """A named motion profile.
 
-    - ``figure8``: slow figure-8 in the 8x6x3 m room (24 s per figure, <= ~0.9 m/s), looking
+    - ``figure8``: slow figure-8 in the 8x6x3 m room (24 s per figure, <= 0.8 m/s), looking
       around +x with +-1 rad of yaw.
     - ``loop``: an ellipse (2.3 x 1.4 m) looking outwards, yaw +2 pi per lap, with small
       0.3-0.5 Hz wobbles; it revisits its start pose exactly after 75 s of motion (t = 78 s
       with the still start).
-    - ``aggressive``: a fast figure-8 (7 s period, ~2.4 m/s, ~3 m/s^2, ~2.7 rad/s) with shakes.
+    - ``aggressive``: a fast figure-8 (7 s period, <= 2.5 m/s, 4 m/s^2, 3 rad/s) with shakes.
     - ``hall``: an 11 x 3 m ellipse in the 30x10x3 m hall, one lap per 60 s (~48 m per lap),
-      looking forward-outward, with small wobbles; 140 s default ~ 110 m of path.
+      looking forward-outward, with small wobbles; 140 s default ~ 117 m of path.
 
     ``moving_start``: no still start (the phase runs from t = 0); default: still for 2 s,
     then a 2 s smooth ramp to full speed.
