@@ -39,7 +39,6 @@ LAZY_SCHEMAS = ("sensor_msgs/msg/Image",)
 MESSAGE_PREFIX = 9 + 22  # opcode, length, channel, sequence, log and publish time
 SMALL_PAYLOAD_BYTES = 8192  # payloads up to this size are kept in memory by the scan
 HEAD_BYTES = 256  # of larger payloads only this much is kept (header stamp, image header)
-NO_STAMP = np.iinfo(np.int64).min
 
 
 @dataclass(frozen=True)
