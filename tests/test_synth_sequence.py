@@ -207,3 +207,15 @@ def test_klt_flow_and_stereo_match_ground_truth(seq) -> None:
         inside = (expected[ok, 0] > 10) & (expected[ok, 0] < 742)
         assert ok.mean() > 0.8
         assert np.median(err[inside]) < 0.1, (cam_to, np.median(err[inside]))
+
+
+def test_prefetching_iter_frames_matches_random_access() -> None:
+    s = make_synthetic_sequence("aggressive", duration_s=0.4, seed=2, pixel_noise_std=1.0)
+    frames = list(s.iter_frames())
+    assert [f.index for f in frames] == list(range(s.num_frames))
+    for f in frames[::3]:
+        g = s.frame(f.index)
+        assert np.array_equal(f.left, g.left) and np.array_equal(f.right, g.right)
+    it = s.iter_frames()
+    assert next(it).index == 0
+    it.close()  # abandoning the iterator early must not hang

@@ -9,6 +9,9 @@ profiles, and at the file's first pose for ``trajectory_file``.
 
 from __future__ import annotations
 
+from collections import deque
+from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,6 +40,7 @@ from slam.trajectory import Trajectory
 
 FRAME_RATE_HZ = 20.0
 IMU_RATE_HZ = 200.0
+PREFETCH_FRAMES = 2  # frames rendered ahead by iter_frames()
 
 # EuRoC MAV cam0/cam1 (VI-Sensor, MT9M034) as in the dataset's sensor.yaml files
 _EUROC_BODY_FROM_CAM0 = np.array(
@@ -152,6 +156,20 @@ class SyntheticSequence(Sequence):
             images = [self._add_pixel_noise(img, index, k) for k, img in enumerate(images)]
         right = images[1] if len(images) > 1 else None
         return StereoFrame(t_ns=t_ns, left=images[0], right=right, index=index)
+
+    def iter_frames(self) -> Iterator[StereoFrame]:
+        """Frames in order, rendering up to ``PREFETCH_FRAMES`` ahead in a worker thread (numpy
+        and cv2.remap release the GIL, so rendering overlaps the consumer's work)."""
+        n = self.num_frames
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="synth-render") as pool:
+            pending: deque[Future[StereoFrame]] = deque()
+            for i in range(min(PREFETCH_FRAMES, n)):
+                pending.append(pool.submit(self.frame, i))
+            for i in range(n):
+                frame = pending.popleft().result()
+                if i + PREFETCH_FRAMES < n:
+                    pending.append(pool.submit(self.frame, i + PREFETCH_FRAMES))
+                yield frame
 
     # --- ground truth -----------------------------------------------------------------------
     @property
