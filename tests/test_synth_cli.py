@@ -48,4 +48,15 @@ def test_synth_cli_user_errors_exit_2(tmp_path, capsys) -> None:
     missing = str(tmp_path / "none.csv")
     assert main(["synth", str(tmp_path / "b.mcap"), "--from-trajectory", missing]) == 2
     assert "not found" in capsys.readouterr().err
+    assert main(["synth", str(tmp_path / "b.mcap"), "--gyro-bias", "1,2"]) == 2
     assert not (tmp_path / "b.mcap").exists()
+
+
+def test_synth_cli_initial_biases(tmp_path) -> None:
+    out = tmp_path / "bias.mcap"
+    args = ["synth", str(out), "--duration", "0.2", "--no-imu-noise", "-q"]
+    assert main([*args, "--gyro-bias", "0.01,-0.02,0.03", "--accel-bias", "0.1,0.2,-0.3"]) == 0
+    ref = make_synthetic_sequence("figure8", duration_s=0.2, imu_noise=False)
+    back = open_sequence(out)
+    assert np.allclose(back.imu().gyro_rad_s - ref.imu().gyro_rad_s, [0.01, -0.02, 0.03])
+    assert np.allclose(back.imu().accel_m_s2 - ref.imu().accel_m_s2, [0.1, 0.2, -0.3])

@@ -35,6 +35,7 @@ examples:
   slam synth room.mcap                                    # figure8, 40 s
   slam synth loop.mcap --profile loop --seed 3
   slam synth fast.mcap --profile aggressive --duration 20 --no-imu-noise
+  slam synth biased.mcap --gyro-bias 0.002,-0.001,0.003 --accel-bias 0.05,0.02,-0.04
   slam synth lost.mcap --blackout 10:2                    # frames black from 10 s to 12 s
   slam synth dense.mcap --duration 10 --depth-dir dense_depth --mesh scene.ply
   slam synth v101.mcap --from-trajectory mav0/state_groundtruth_estimate0/data.csv \\
@@ -57,6 +58,19 @@ def parse_blackout(text: str | None) -> tuple[float, float] | None:
     return start, dur
 
 
+def parse_vector3(text: str | None, option: str) -> tuple[float, float, float] | None:
+    """``X,Y,Z`` -> a 3-tuple of floats."""
+    if text is None:
+        return None
+    try:
+        x, y, z = (float(v) for v in text.split(","))
+    except ValueError as exc:
+        raise InputError(
+            f"{option} expects three comma-separated numbers X,Y,Z, got {text!r}"
+        ) from exc
+    return x, y, z
+
+
 def run(args: argparse.Namespace) -> int:
     from datasets.synth.export import run_synth
 
@@ -73,6 +87,8 @@ def run(args: argparse.Namespace) -> int:
         moving_start=args.moving_start,
         aliasing=args.aliasing,
         pixel_noise_std=args.pixel_noise,
+        gyro_bias0_rad_s=parse_vector3(args.gyro_bias, "--gyro-bias"),
+        accel_bias0_m_s2=parse_vector3(args.accel_bias, "--accel-bias"),
         depth_dir=args.depth_dir,
         mesh_path=args.mesh,
         progress=not args.quiet,
@@ -105,6 +121,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--imu-csv", metavar="FILE", help="real EuRoC imu0/data.csv to use instead")
     p.add_argument("--no-imu-noise", action="store_true", help="exact IMU (no noise, no bias)")
+    p.add_argument("--gyro-bias", metavar="X,Y,Z", help="initial gyro bias, rad/s (default 0)")
+    p.add_argument("--accel-bias", metavar="X,Y,Z", help="initial accel bias, m/s^2 (default 0)")
     p.add_argument("--blackout", metavar="START:DUR", help="black frames in [START, START+DUR) s")
     p.add_argument("--moving-start", action="store_true", help="start in motion (no still 2 s)")
     p.add_argument(

@@ -115,6 +115,8 @@ def run_synth(
     moving_start: bool = False,
     aliasing: bool = False,
     pixel_noise_std: float = 0.0,
+    gyro_bias0_rad_s: tuple[float, float, float] | None = None,
+    accel_bias0_m_s2: tuple[float, float, float] | None = None,
     depth_dir: str | os.PathLike[str] | None = None,
     mesh_path: str | os.PathLike[str] | None = None,
     progress: bool = True,
@@ -135,6 +137,8 @@ def run_synth(
         scene_seed=scene_seed,
         trajectory_file=trajectory_file,
         imu_csv=imu_csv,
+        gyro_bias0_rad_s=None if gyro_bias0_rad_s is None else np.asarray(gyro_bias0_rad_s),
+        accel_bias0_m_s2=None if accel_bias0_m_s2 is None else np.asarray(accel_bias0_m_s2),
     )
     out = Path(out_mcap)
     write_sequence_mcap(seq, out, progress=progress)
