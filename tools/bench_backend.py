@@ -99,6 +99,7 @@ def run_benchmark(
         "window_keyframes": len(final.keyframe_poses),
         "window_landmarks": len(final.landmark_ids),
         "resets": st.resets,
+        "reset_reasons": list(st.failures[:5]),
         "landmarks_inserted": st.landmarks_inserted,
         "landmarks_culled": st.landmarks_culled,
         "observations_gated": st.observations_gated,

