@@ -613,14 +613,15 @@ class VioBackend:
             track = [o for o in self._tracks.get(lid, []) if o.k in window_ks]
             if prev is not None:
                 # slots are reused (findUnusedFactorSlots): the index must still hold *our* factor
-                if not (existing.exists(prev[0]) and existing.at(prev[0]) is prev[1]):
+                prev_factor: Any = prev[1]
+                if not (existing.exists(prev[0]) and existing.at(prev[0]) is prev_factor):
                     # its factor was marginalised (its information is in the marginal prior):
                     # start a fresh track so no observation is counted twice
                     del self._smart[lid]
                     prev = None
                     track = []
                 else:
-                    res = prev[1].point()
+                    res = prev_factor.point()
                     if res.valid() and not self._gate_ok(poses[k], res.get(), uv_l, uv_r, gate_px):
                         self.stats.observations_gated += 1
                         continue
