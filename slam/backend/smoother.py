@@ -614,7 +614,8 @@ class VioBackend:
             if prev is not None:
                 # slots are reused (findUnusedFactorSlots): the index must still hold *our* factor
                 prev_factor: Any = prev[1]
-                if not (existing.exists(prev[0]) and existing.at(prev[0]) is prev_factor):
+                alive = bool(existing.exists(prev[0]) and existing.at(prev[0]) is prev_factor)
+                if not alive:
                     # its factor was marginalised (its information is in the marginal prior):
                     # start a fresh track so no observation is counted twice
                     del self._smart[lid]
