@@ -66,6 +66,9 @@ class MapperConfig:
     """Re-integrate a keyframe after a pose update that moves it more than this..."""
     reintegrate_rotation_deg: float = 0.5
     """...or rotates it more than this."""
+    depth_weight_ref_m: float | None = 1.5
+    """Stereo depth noise grows with z^2: fuse each pixel with weight min(1, (ref / z)^2) so
+    near observations dominate; None = uniform weights (sensor depth gets uniform weights)."""
     mesh_min_weight: float = 1.0
     """Mesh only where every cube corner has weight above this (1.0: seen by 2+ keyframes),
     which removes surfaces that a single wrong depth map created."""
@@ -112,6 +115,7 @@ class _StoredKeyframe:
     world_from_cam0: np.ndarray
     K: np.ndarray
     depth_m: np.ndarray  # float16, 0 = invalid
+    from_stereo: bool  # depth from the sweep (uncertainty weights) or from a sensor
     color: np.ndarray | None  # uint8 RGB, kept only for re-integration colour
     gray: np.ndarray | None  # uint8, kept for the recent history only
 
@@ -230,14 +234,19 @@ class DenseMapper:
                 depth = np.where(checked & ~agree, 0.0, depth).astype(np.float32)
         else:
             depth = np.asarray(depth_m, np.float32)
+        # Fuse exactly what is stored (float16) so that re-integration undoes it exactly.
+        depth = depth.astype(np.float16).astype(np.float32)
         t1 = time.perf_counter()
-        self.volume.integrate(depth, k_left, world_from_cam0, color)
+        self.volume.integrate(
+            depth, k_left, world_from_cam0, color, weight_map=self._weights(depth, depth_m is None)
+        )
         t2 = time.perf_counter()
         self._keyframes[t_ns] = _StoredKeyframe(
             t_ns,
             np.array(world_from_cam0, float),
             np.array(k_left, float),
             depth.astype(np.float16),
+            depth_m is None,
             color if cfg.keep_color else None,
             gray,
         )
@@ -254,6 +263,12 @@ class DenseMapper:
         )
         self.reports.append(report)
         return report
+
+    def _weights(self, depth: np.ndarray, from_stereo: bool) -> np.ndarray | None:
+        ref = self.config.depth_weight_ref_m
+        if ref is None or not from_stereo:
+            return None
+        return np.minimum(1.0, (ref / np.maximum(depth, 1e-3)) ** 2).astype(np.float32)
 
     # --- loop correction -----------------------------------------------------------------------
     def update_poses(self, world_from_cam0_by_t: Mapping[int, np.ndarray]) -> int:
@@ -273,8 +288,9 @@ class DenseMapper:
                 kf.world_from_cam0 = new_pose
                 continue
             depth = kf.depth_m.astype(np.float32)
-            self.volume.deintegrate(depth, kf.K, kf.world_from_cam0, kf.color)
-            self.volume.integrate(depth, kf.K, new_pose, kf.color)
+            wmap = self._weights(depth, kf.from_stereo)
+            self.volume.deintegrate(depth, kf.K, kf.world_from_cam0, kf.color, weight_map=wmap)
+            self.volume.integrate(depth, kf.K, new_pose, kf.color, weight_map=wmap)
             kf.world_from_cam0 = new_pose
             moved += 1
         return moved

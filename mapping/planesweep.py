@@ -122,10 +122,11 @@ class Undistorter:
                 intrinsics.K, intrinsics.dist_coeffs, np.eye(3), self.K, size, cv2.CV_16SC2
             )
 
-    def __call__(self, image: np.ndarray) -> np.ndarray:
+    def __call__(self, image: np.ndarray, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
+        """Undistorted image (``cv2.INTER_NEAREST`` for depth maps and labels)."""
         if self._maps is None:
             return image
-        return cv2.remap(image, self._maps[0], self._maps[1], cv2.INTER_LINEAR)
+        return cv2.remap(image, self._maps[0], self._maps[1], interpolation)
 
 
 def to_gray_f32(image: np.ndarray) -> np.ndarray:
