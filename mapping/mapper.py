@@ -57,6 +57,11 @@ class MapperConfig:
     """A keyframe farther than this overlaps too little."""
     max_view_angle_deg: float = 30.0
     """Largest angle between optical axes of a reference and a source keyframe."""
+    min_motion_m: float = 0.02
+    """A keyframe within this distance (and ``min_motion_deg``) of the last fused one adds no
+    new view of the scene; it is skipped (fusing it would only re-weight the same errors)."""
+    min_motion_deg: float = 2.0
+    """Rotation below which a keyframe counts as not moved (see ``min_motion_m``)."""
     history: int = 12
     """How many recent keyframes are kept as source candidates (images are kept for these)."""
     consistency_rel_tol: float = 0.02
@@ -103,7 +108,8 @@ class KeyframeReport:
 
     t_ns: int
     num_sources: int
-    valid_fraction: float
+    valid_fraction: float  # 0 when skipped
+    skipped: bool
     depth_ms: float
     fusion_ms: float
     blocks: int
@@ -198,6 +204,10 @@ class DenseMapper:
         cfg = self.config
         rig = self.rig
         t0 = time.perf_counter()
+        if self._order and self._has_not_moved(world_from_cam0):
+            report = KeyframeReport(t_ns, 0, 0.0, True, 0.0, 0.0, self.volume.num_blocks)
+            self.reports.append(report)
+            return report
         left = rig.undistort_left(image_left) if rig else image_left
         k_left = rig.K_left if rig else K
         if k_left is None:
@@ -257,12 +267,22 @@ class DenseMapper:
             t_ns,
             n_sources,
             float((depth > 0).mean()),
+            False,
             1e3 * (t1 - t0),
             1e3 * (t2 - t1),
             self.volume.num_blocks,
         )
         self.reports.append(report)
         return report
+
+    def _has_not_moved(self, world_from_cam0: np.ndarray) -> bool:
+        last = self._keyframes[self._order[-1]].world_from_cam0
+        delta = invert_transform(last) @ world_from_cam0
+        angle = float(np.degrees(np.linalg.norm(so3_log(delta[:3, :3]))))
+        return bool(
+            np.linalg.norm(delta[:3, 3]) < self.config.min_motion_m
+            and angle < self.config.min_motion_deg
+        )
 
     def _weights(self, depth: np.ndarray, from_stereo: bool) -> np.ndarray | None:
         ref = self.config.depth_weight_ref_m

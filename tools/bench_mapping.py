@@ -302,7 +302,12 @@ def bench_render_7scenes(out_dir: Path, every: int) -> dict:
 
     folder = RgbdFolder(DATA / "7scenes_rgbd_400")
     mapper = DenseMapper(
-        MapperConfig(tsdf=TsdfConfig(voxel_m=0.01, max_depth_m=4.0), mesh_min_weight=0.0)
+        MapperConfig(
+            tsdf=TsdfConfig(voxel_m=0.01, max_depth_m=4.0),
+            mesh_min_weight=0.0,
+            min_motion_m=0.0,
+            min_motion_deg=0.0,
+        )
     )
     for i in range(0, len(folder), every):
         fr = folder.frame(i)

@@ -81,7 +81,10 @@ def run(args: argparse.Namespace) -> int:
         any(args.input.glob("frame-*.depth.png")) or any(args.input.glob("data/frame-*.depth.png"))
     )
     if is_rgbd:
-        config = MapperConfig(tsdf=config.tsdf, mesh_min_weight=0.0)
+        # Sensor depth: every frame counts (no motion gate), every observed surface is meshed.
+        config = MapperConfig(
+            tsdf=config.tsdf, mesh_min_weight=0.0, min_motion_m=0.0, min_motion_deg=0.0
+        )
         result = fuse_rgbd_folder(args.input, config, args.every or 1, args.max_frames, trajectory)
     else:
         result = fuse_sequence(args.input, trajectory, config, args.every or 10, args.max_frames)
