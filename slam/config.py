@@ -16,6 +16,7 @@ import yaml
 
 from slam.backend.config import BackendConfig
 from slam.errors import SlamError
+from slam.loop.config import LoopClosureConfig
 
 
 @dataclass
@@ -99,8 +100,11 @@ class SlamConfig:
     backend_process: bool = True
     """Run the back end in a worker process (GTSAM holds the GIL for every call; a thread would
     stall the front end). False runs it in a thread of this process."""
+    loop_closure: bool = False
+    """Place recognition, loop closure (pose-graph optimisation) and relocalisation."""
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
+    loop: LoopClosureConfig = field(default_factory=LoopClosureConfig)
     player: PlayerConfig = field(default_factory=PlayerConfig)
     viz: VizConfig = field(default_factory=VizConfig)
 
@@ -110,7 +114,7 @@ class SlamConfig:
 
 PRESETS: dict[str, dict[str, Any]] = {
     "stereo-vo": {"use_imu": False},
-    "euroc-stereo-imu": {"use_imu": True},
+    "euroc-stereo-imu": {"use_imu": True, "loop_closure": True},
 }
 
 

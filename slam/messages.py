@@ -82,7 +82,9 @@ class Estimate:
 class TrackingResult:
     """What the front end made of one frame: the pose (or the lack of one) and its features.
 
-    ``state`` is one of "init" (a new map segment started here), "tracking", "lost".
+    ``state`` is one of "init" (a new map segment started here), "tracking", "lost",
+    "relocalised" (found again in the existing map after a loss: the segment continues),
+    "recovered" (tracking restarted at the IMU dead-reckoned pose: the segment continues).
     ``world_from_body`` is None when the frame could not be tracked: the trajectory marks the
     gap instead of inventing a pose.
     """

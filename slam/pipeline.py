@@ -30,6 +30,7 @@ from slam.backend_stage import BackendStage
 from slam.config import SlamConfig, config_to_yaml
 from slam.frontend.tracker import FrontEnd
 from slam.imu_buffer import ImuBuffer
+from slam.loop.stage import LoopClosureStage
 from slam.messages import BackendOutput, ImuSample, Keyframe, StereoFrame, TrackingResult
 from slam.output import trajectory_from_poses, write_run_outputs
 from slam.stage import Latest, Stage, StageError
@@ -46,6 +47,7 @@ class Recorder:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self.poses: list[tuple[int, np.ndarray]] = []
+        self.pose_segments: list[int] = []
         self.keyframes: list[tuple[int, np.ndarray]] = []
         self.frontend_latency_ms: list[float] = []
         self.states: dict[str, int] = {}
@@ -60,6 +62,7 @@ class Recorder:
             self.last_state = res.state
             if res.world_from_body is not None:
                 self.poses.append((res.t_ns, res.world_from_body))
+                self.pose_segments.append(res.segment_id)
                 if res.is_keyframe:
                     self.keyframes.append((res.t_ns, res.world_from_body))
                     self.keyframe_times[res.keyframe_id] = res.t_ns
@@ -122,6 +125,7 @@ class RunResult:
     interrupted: bool = False
     error: StageError | None = None
     warnings: list[str] = field(default_factory=list)
+    loop_closed: Trajectory | None = None
 
 
 def _percentiles(values: list[float]) -> dict[str, float]:
@@ -165,6 +169,7 @@ def run_slam(
     frontend = FrontEnd(
         seq.calibration, cfg.frontend, imu_buffer, latest_estimate.get, recorder.reframe
     )
+    loop_stage: LoopClosureStage | None = None
     keyframe_consumers: list[Stage] = []
     imu_consumers: list[Stage] = []
     backend: BackendStage | None = None
@@ -193,6 +198,32 @@ def run_slam(
         )
         keyframe_consumers.append(backend)
         imu_consumers.append(backend)
+    if cfg.loop_closure:
+        from slam.loop.viz import log_loop_correction
+        from slam.messages import LoopCorrection
+
+        def on_loop_correction(corr: LoopCorrection) -> None:
+            recorder.event(
+                corr.t_ns,
+                f"loop closed: keyframe {corr.query_keyframe_id} -> {corr.match_keyframe_id} "
+                f"({corr.inliers} inliers)",
+            )
+            if viewer is not None and rec is not None:
+                viewer.put(("loop", corr), block=False)
+
+        def odometry_pose(kid: int) -> np.ndarray | None:
+            """Back-end pose of a keyframe, else the front end's current belief of it (which
+            follows the frame change at initialisation; Keyframe.world_from_body_vo does not)."""
+            pose = None if backend is None else backend.keyframe_poses.get(kid)
+            return pose if pose is not None else frontend.kf_poses.get(kid)
+
+        loop_stage = LoopClosureStage(
+            seq.calibration, cfg.loop, odometry_pose, on_loop_correction, threaded
+        )
+        keyframe_consumers.append(loop_stage)
+        frontend.relocaliser = loop_stage.relocaliser
+        if viewer is not None:
+            viewer.loop_logger = log_loop_correction
     fe_stage = FrontendStage(
         frontend, recorder, keyframe_consumers, viewer, threaded, cfg.player.frame_queue_size
     )
@@ -247,6 +278,9 @@ def run_slam(
             },
             "peak_rss_mb": peak_rss_mb(),
             "peak_rss_children_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0,
+            "loop_closure": None if loop_stage is None else loop_stage.stats(),
+            "relocalisations": fe.relocalisations,
+            "imu_bridged_losses": fe.imu_bridged,
             "backend": None
             if backend is None
             else {
@@ -270,12 +304,43 @@ def run_slam(
         poses = sorted((times[k], p) for k, p in dict(backend.keyframe_poses).items() if k in times)
         return trajectory_from_poses(poses)
 
+    def loop_closed(traj: Trajectory) -> dict[str, Trajectory]:
+        """The loop-closed trajectory (every frame through its keyframe's correction)."""
+        if loop_stage is None or len(traj) == 0:
+            return {}
+        from slam.loop.closer import loop_closed_poses
+
+        corrections = loop_stage.keyframe_corrections()
+        closer = loop_stage.closer
+        with loop_stage._lock:  # the loop stage's thread adds keyframes concurrently
+            kids = [k for k in corrections if k in closer.t_ns_of]
+            kf_t = np.array([closer.t_ns_of[k] for k in kids], dtype=np.int64)
+            kf_seg = np.array([closer.segment_of[k] for k in kids])
+        if not kids:
+            return {}
+        with recorder._lock:
+            segments = np.array(recorder.pose_segments[: len(traj)])
+        poses = loop_closed_poses(
+            traj.t_ns,
+            segments,
+            traj.matrices(),
+            kf_t,
+            kf_seg,
+            np.array([corrections[k] for k in kids]),
+        )
+        return {"trajectory_loop_closed": Trajectory.from_matrices(traj.t_ns, poses)}
+
     def flush() -> None:
         if out_dir is None:
             return
         traj, kfs, _ = recorder.snapshot()
         write_run_outputs(
-            out_dir, traj, keyframe_trajectory(kfs), make_stats(), config_to_yaml(cfg)
+            out_dir,
+            traj,
+            keyframe_trajectory(kfs),
+            make_stats(),
+            config_to_yaml(cfg),
+            loop_closed(traj),
         )
 
     try:
@@ -336,9 +401,19 @@ def run_slam(
         stats = make_stats()
         traj, kfs, _ = recorder.snapshot()
         kfs = keyframe_trajectory(kfs)
+        extra = loop_closed(traj)
         if out_dir is not None:
-            write_run_outputs(out_dir, traj, kfs, stats, config_to_yaml(cfg))
-    return RunResult(out_dir, traj, kfs, stats, interrupted, error, list(seq.warnings))
+            write_run_outputs(out_dir, traj, kfs, stats, config_to_yaml(cfg), extra)
+    return RunResult(
+        out_dir,
+        traj,
+        kfs,
+        stats,
+        interrupted,
+        error,
+        list(seq.warnings),
+        extra.get("trajectory_loop_closed"),
+    )
 
 
 __all__ = ["RunResult", "run_slam", "Keyframe"]

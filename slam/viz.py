@@ -93,6 +93,7 @@ class RerunStage(Stage):
         self.kf_positions: list[np.ndarray] = []
         self.last_state = ""
         self.n_results = 0
+        self.loop_logger: Any = None  # slam.loop.viz.log_loop_correction when loops are on
         cam = calib.cameras[0]
         intr = cam.intrinsics
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
@@ -139,6 +140,18 @@ class RerunStage(Stage):
                 )
         elif isinstance(msg, tuple) and len(msg) == 2 and msg[0] == "log":
             self.rec.log("log", self.rr.TextLog(str(msg[1])))
+        elif isinstance(msg, tuple) and len(msg) == 2 and msg[0] == "loop":
+            corr = msg[1]
+            self._time(corr.t_ns)
+            self.rec.log(
+                "log",
+                self.rr.TextLog(
+                    f"loop closed: keyframe {corr.query_keyframe_id} -> "
+                    f"{corr.match_keyframe_id} ({corr.inliers} inliers)"
+                ),
+            )
+            if self.loop_logger is not None:
+                self.loop_logger(self.rec, corr, None)
 
     def _log_result(self, res: TrackingResult) -> None:
         rr = self.rr

@@ -125,7 +125,7 @@ def test_sigint_leaves_valid_outputs(tmp_path):
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     slam = [sys.executable, "-m", "tools.cli"]
     subprocess.run(
-        [*slam, "synth", str(seq_path), "--profile", "figure8", "--duration", "20"],
+        [*slam, "synth", str(seq_path), "--profile", "figure8", "--duration", "10"],
         check=True,
         cwd=PROJECT_ROOT,
         env=env,
@@ -150,7 +150,7 @@ def test_sigint_leaves_valid_outputs(tmp_path):
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
     )
-    time.sleep(6.0)
+    time.sleep(5.0)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err.decode()

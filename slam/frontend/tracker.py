@@ -17,6 +17,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -39,6 +40,8 @@ class FrontendStats:
     lost_frames: int = 0
     tracking_losses: int = 0
     segments: int = 0
+    relocalisations: int = 0
+    imu_bridged: int = 0
     keyframes: int = 0
     estimate_corrections: int = 0
     state_log: list[tuple[int, str]] = field(default_factory=list)
@@ -54,6 +57,7 @@ class FrontEnd:
         imu: ImuBuffer | None = None,
         estimate_source: Callable[[], Estimate | None] | None = None,
         on_reframe: Callable[[np.ndarray], None] | None = None,
+        relocaliser: Any = None,
     ):
         if not calib.is_stereo:
             raise ValueError("the front end needs a stereo calibration (cam0 and cam1)")
@@ -62,6 +66,7 @@ class FrontEnd:
         self.imu = imu
         self.estimate_source = estimate_source or (lambda: None)
         self.on_reframe = on_reframe
+        self.relocaliser = relocaliser  # slam.loop.relocaliser.Relocaliser, or None
         self.reframed = False
         self.cam0 = calib.cameras[0].intrinsics
         self.K = self.cam0.K
@@ -341,7 +346,13 @@ class FrontEnd:
         self.landmarks.clear()
         pose = self.last_known_pose.copy()
         prior = self._imu_prior(frame.t_ns) if self.stats.segments else None
-        if prior is not None:
+        reloc = None
+        if self.stats.segments and self.relocaliser is not None:
+            # Against the existing map first: found there, the segment simply continues.
+            reloc = self.relocaliser.relocalise(frame.left, frame.t_ns, segment_id=self.segment_id)
+        if reloc is not None:
+            pose = np.asarray(reloc.world_from_body, dtype=float).copy()
+        elif prior is not None:
             pose = prior  # dead-reckoned across the gap: the new segment starts where we are
         elif self.t_prev_ns and self.stats.segments:
             rot = self._gyro_rotation(self.t_prev_ns, frame.t_ns)
@@ -349,20 +360,38 @@ class FrontEnd:
                 pose[:3, :3] = pose[:3, :3] @ rot
         self.world_from_body = pose
         self.prev_world_from_body = None
-        kf = self._make_keyframe(frame, pyr, new_segment=True)
+        # Relocalised, or bridged by IMU dead reckoning from the back end's estimate: the map's
+        # frame carries on, so does the segment. Only without either does a new segment start.
+        continues = reloc is not None or (prior is not None and self.stats.segments > 0)
+        kf = self._make_keyframe(frame, pyr, new_segment=not continues)
         if kf is None:
             self.world_from_body = None
             return self._lose(frame, t_start, "too few stereo matches to start a map"), None
         self.stats.tracked += 1
+        self.last_known_pose = pose
+        state, reason = "init", ""
+        if reloc is not None:
+            self.mapped = True
+            self.stats.relocalisations += 1
+            state = "relocalised"
+            reason = f"against keyframe {reloc.keyframe_id} ({reloc.inliers} inliers)"
+            self.stats.state_log.append((frame.t_ns, f"relocalised {reason}"))
+        elif continues:
+            self.mapped = True
+            self.stats.imu_bridged += 1
+            state = "recovered"
+            reason = "IMU dead reckoning across the gap"
+            self.stats.state_log.append((frame.t_ns, f"recovered: {reason}"))
         return (
             self._result(
                 frame,
-                "init",
+                state,
                 t_start,
                 world_from_body=pose,
                 is_keyframe=True,
                 keyframe_id=kf.keyframe_id,
                 num_inliers=len(kf.landmark_ids),
+                reason=reason,
             ),
             kf,
         )
