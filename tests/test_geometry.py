@@ -32,7 +32,24 @@ def test_radtan_projection_inverts_undistortion():
     pts = np.array([[0.1, -0.2, 1.0], [-0.3, 0.25, 2.0], [0.0, 0.0, 3.0]])
     px = intr.project(pts)
     norm = intr.undistort_points(px)
-    np.testing.assert_allclose(norm, pts[:, :2] / pts[:, 2:], atol=1e-6)
+    np.testing.assert_allclose(norm, pts[:, :2] / pts[:, 2:], atol=1e-9)
+
+
+def test_radtan_undistortion_is_exact_at_the_image_corners():
+    intr = CameraIntrinsics(
+        752,
+        480,
+        458.654,
+        457.296,
+        367.215,
+        248.375,
+        "radtan",
+        (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05),
+    )
+    corners = np.array([[0.0, 0.0], [751.0, 0.0], [0.0, 479.0], [751.0, 479.0], [367.0, 248.0]])
+    norm = intr.undistort_points(corners)
+    back = intr.project(np.hstack([norm, np.ones((len(norm), 1))]))
+    np.testing.assert_allclose(back, corners, atol=1e-6)
 
 
 def test_calibration_dict_roundtrip():
