@@ -137,6 +137,12 @@ def evaluate_run(seq_path: Path, run_dir: Path) -> dict[str, Any]:
             out[f"rpe_{delta:g}m_m"] = rpe_of(p_se3, "trans", delta, "metres").stats["rmse"]
         except Exception:  # path shorter than the delta
             out[f"rpe_{delta:g}m_m"] = None
+    closed = run_dir / "trajectory_loop_closed.tum"
+    if closed.exists():
+        ref_c, est_c = load_pair(seq_path, closed, EvalOptions())
+        out["ate_loop_closed_m"] = ape_of(prepare(ref_c, est_c, EvalOptions(align="se3"))).stats[
+            "rmse"
+        ]
     try:
         segs = segments_of(p_yaw, resolve_lengths("rpg", p_yaw.ref_poses))
         out["drift_pct"] = float(sum(s.stats["mean"] for s in segs) / len(segs))
@@ -154,6 +160,7 @@ def summarise(name: str, stats: dict[str, Any], acc: dict[str, Any]) -> dict[str
         **acc,
         "completion_pct": 100.0 * stats.get("frames_tracked", 0) / frames_in,
         "tracking_losses": stats.get("tracking_losses"),
+        "loops_accepted": (stats.get("loop_closure") or {}).get("accepted"),
         "init_s": be.get("initialised_after_s"),
         "real_time_factor": stats.get("real_time_factor"),
         "frontend_p50_ms": fe.get("p50_ms"),
@@ -171,10 +178,12 @@ COLUMNS = (
     ("sequence", "sequence", "{}"),
     ("ate_se3_m", "ATE se3 (m)", "{:.4f}"),
     ("ate_posyaw_m", "ATE posyaw (m)", "{:.4f}"),
+    ("ate_loop_closed_m", "ATE loop-closed (m)", "{:.4f}"),
     ("rpe_1m_m", "RPE 1 m (m)", "{:.4f}"),
     ("rpe_10m_m", "RPE 10 m (m)", "{:.4f}"),
     ("drift_pct", "drift (%)", "{:.3f}"),
     ("completion_pct", "completion (%)", "{:.1f}"),
+    ("loops_accepted", "loops", "{}"),
     ("init_s", "init (s)", "{:.2f}"),
     ("real_time_factor", "RTF", "{:.2f}"),
     ("frontend_p50_ms", "FE p50 (ms)", "{:.1f}"),
