@@ -349,7 +349,19 @@ class FrontEnd:
         reloc = None
         if self.stats.segments and self.relocaliser is not None:
             # Against the existing map first: found there, the segment simply continues.
-            reloc = self.relocaliser.relocalise(frame.left, frame.t_ns, segment_id=self.segment_id)
+            recent = sorted(self.kf_poses)[-6:]
+            reloc = self.relocaliser.relocalise(
+                frame.left, frame.t_ns, segment_id=self.segment_id, recent_ids=recent
+            )
+        if reloc is not None and prior is not None:
+            # A relocalisation that contradicts IMU dead reckoning over a short gap is an alias.
+            delta = invert_transform(prior) @ np.asarray(reloc.world_from_body, dtype=float)
+            angle = np.arccos(np.clip((np.trace(delta[:3, :3]) - 1) / 2, -1.0, 1.0))
+            if np.linalg.norm(delta[:3, 3]) > 1.0 or angle > np.radians(20.0):
+                self.stats.state_log.append(
+                    (frame.t_ns, "relocalisation rejected: it contradicts the IMU prior")
+                )
+                reloc = None
         if reloc is not None:
             pose = np.asarray(reloc.world_from_body, dtype=float).copy()
         elif prior is not None:

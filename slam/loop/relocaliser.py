@@ -38,6 +38,14 @@ class Relocalisation:
     elapsed_ms: float
 
 
+@dataclass(frozen=True)
+class _RecentHit:
+    """A candidate named by the caller rather than found by the BoW query."""
+
+    kf_id: int
+    score: float = 0.0
+
+
 class Relocaliser:
     """Finds a lost camera among the stored keyframes."""
 
@@ -65,10 +73,15 @@ class Relocaliser:
         self.elapsed_ms: list[float] = []
 
     def relocalise(
-        self, image_left: np.ndarray, t_ns: int, segment_id: int | None = None
+        self,
+        image_left: np.ndarray,
+        t_ns: int,
+        segment_id: int | None = None,
+        recent_ids: list[int] | None = None,
     ) -> Relocalisation | None:
         """Pose of ``image_left`` against the stored keyframes (only those of ``segment_id``
-        when given), or None."""
+        when given), or None. ``recent_ids`` (e.g. the last keyframes before a loss) are
+        verified too, whatever their BoW rank: after a short gap they are the likeliest."""
         t0 = time.perf_counter()
         self.calls += 1
         query = describe_image(image_left, self.vocab, self.intr, self.cfg.max_orb_features)
@@ -82,6 +95,9 @@ class Relocaliser:
             hits = self.store.database.query(
                 query.bow, exclude=skip, max_results=self.cfg.reloc_candidates
             )
+            known = {h.kf_id for h in hits}
+            extra = [k for k in (recent_ids or []) if k not in known and self.store.has(k)]
+            hits = list(hits) + [_RecentHit(k) for k in extra]  # type: ignore[misc]
             descs = [self.store.description(h.kf_id) for h in hits]
         best = None
         for hit, cand in zip(hits, descs, strict=True):
