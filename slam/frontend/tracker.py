@@ -98,6 +98,7 @@ class FrontEnd:
         self.applied_estimate: tuple[int, int] = (-1, -1)
         self.bias_gyro = np.zeros(3)
         self.latest_estimate: Estimate | None = None
+        self._prior_cache: tuple[Estimate, int, np.ndarray, np.ndarray] | None = None
         self.gravity_m_s2 = calib.imu.gravity_m_s2 if calib.imu else 9.81
 
     # ------------------------------------------------------------------ feedback
@@ -208,17 +209,27 @@ class FrontEnd:
         est = self.latest_estimate
         if est is None or self.imu is None or t_ns - est.t_ns > 3_000_000_000:
             return None
+        # Propagate incrementally from the last propagated state while the estimate is the
+        # same one: O(samples since the last frame), not O(samples since the estimate).
+        cached = self._prior_cache
+        if cached is not None and cached[0] is est and cached[1] <= t_ns:
+            t0, pose0, vel0 = cached[1], cached[2], cached[3]
+        else:
+            t0, pose0, vel0 = est.t_ns, est.world_from_body, est.velocity_world_m_s
         out = propagate_pose(
-            self.imu.window(est.t_ns, t_ns),
-            est.t_ns,
+            self.imu.window(t0, t_ns),
+            t0,
             t_ns,
-            est.world_from_body,
-            est.velocity_world_m_s,
+            pose0,
+            vel0,
             est.bias_gyro_rad_s,
             est.bias_accel_m_s2,
             self.gravity_m_s2,
         )
-        return None if out is None else out[0]
+        if out is None:
+            return None
+        self._prior_cache = (est, t_ns, out[0], out[1])
+        return out[0]
 
     def _predict_pose(self, t_ns: int, rot_b0_b1: np.ndarray | None) -> np.ndarray:
         assert self.world_from_body is not None
