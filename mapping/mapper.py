@@ -46,9 +46,10 @@ class MapperConfig:
     tsdf: TsdfConfig = field(default_factory=lambda: TsdfConfig(voxel_m=0.02, max_depth_m=4.0))
     """Fusion volume."""
     sweep: SweepConfig = field(
-        default_factory=lambda: SweepConfig(depth_min_m=0.4, depth_max_m=8.0)
+        default_factory=lambda: SweepConfig(depth_min_m=0.4, depth_max_m=8.0, num_planes=128)
     )
-    """Plane sweep per keyframe."""
+    """Plane sweep per keyframe (128 planes: over 0.4-8 m, 64 planes step ~2 px of stereo
+    disparity, too coarse for the parabola refinement; 128 halve the mesh error)."""
     num_keyframe_sources: int = 1
     """Earlier keyframes used as extra source views (besides the stereo partner)."""
     min_baseline_m: float = 0.04
@@ -74,9 +75,10 @@ class MapperConfig:
     depth_weight_ref_m: float | None = 1.5
     """Stereo depth noise grows with z^2: fuse each pixel with weight min(1, (ref / z)^2) so
     near observations dominate; None = uniform weights (sensor depth gets uniform weights)."""
-    mesh_min_weight: float = 1.0
-    """Mesh only where every cube corner has weight above this (1.0: seen by 2+ keyframes),
-    which removes surfaces that a single wrong depth map created."""
+    mesh_min_weight: float = 0.25
+    """Mesh only where every cube corner has fused weight above this (weights are 1 per
+    keyframe up to 1.5 m, (1.5 / z)^2 beyond), which removes thin surfaces that one noisy far
+    depth map created; 0 keeps everything observed."""
     keep_color: bool = False
     """Keep every keyframe's colour image so re-integration also moves colour (1 MB per 752x480
     keyframe); without it re-integration moves geometry only. Depth is always kept (float16,
