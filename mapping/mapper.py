@@ -24,6 +24,7 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from mapping.mesh import TriangleMesh, extract_mesh
@@ -58,6 +59,9 @@ class MapperConfig:
     """A keyframe farther than this overlaps too little."""
     max_view_angle_deg: float = 30.0
     """Largest angle between optical axes of a reference and a source keyframe."""
+    depth_scale: float = 1.0
+    """Sweep (and fuse) at this fraction of the image size: 0.5 is ~4x cheaper; at 2 cm voxels a
+    half-resolution 752x480 pixel still covers less than a voxel beyond ~1.5 m."""
     min_motion_m: float = 0.02
     """A keyframe within this distance (and ``min_motion_deg``) of the last fused one adds no
     new view of the scene; it is skipped (fusing it would only re-weight the same errors)."""
@@ -137,6 +141,24 @@ def _to_gray_u8(image: np.ndarray) -> np.ndarray:
     return np.clip(img, 0, 255).astype(np.uint8)
 
 
+def _scaled_K(K: np.ndarray, scale: float) -> np.ndarray:  # noqa: N802 - the usual name
+    """Pinhole matrix of an image resized by ``scale`` (pixel centres at integers)."""
+    if scale == 1.0:
+        return K
+    out = K.copy()
+    out[0, 0] *= scale
+    out[1, 1] *= scale
+    out[0, 2] = (K[0, 2] + 0.5) * scale - 0.5
+    out[1, 2] = (K[1, 2] + 0.5) * scale - 0.5
+    return out
+
+
+def _resized(image: np.ndarray, scale: float) -> np.ndarray:
+    if scale == 1.0:
+        return image
+    return cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+
+
 def _to_rgb_u8(image: np.ndarray) -> np.ndarray:
     img = np.asarray(image)
     if img.ndim == 2:
@@ -214,15 +236,17 @@ class DenseMapper:
         k_left = rig.K_left if rig else K
         if k_left is None:
             raise ValueError("add_keyframe needs K when the mapper has no calibration rig")
-        gray = _to_gray_u8(left)
-        color = _to_rgb_u8(color_rgb if color_rgb is not None else left)
+        scale = cfg.depth_scale if depth_m is None else 1.0
+        k_left = _scaled_K(np.asarray(k_left, float), scale)
+        gray = _resized(_to_gray_u8(left), scale)
+        color = _resized(_to_rgb_u8(color_rgb if color_rgb is not None else left), scale)
         n_sources = 0
         if depth_m is None:
             sources: list[SourceView] = []
             if image_right is not None and rig is not None and rig.undistort_right is not None:
                 assert rig.K_right is not None and rig.cam1_from_cam0 is not None
-                right = _to_gray_u8(rig.undistort_right(image_right))
-                sources.append(SourceView(right, rig.K_right, rig.cam1_from_cam0))
+                right = _resized(_to_gray_u8(rig.undistort_right(image_right)), scale)
+                sources.append(SourceView(right, _scaled_K(rig.K_right, scale), rig.cam1_from_cam0))
             for kf in self._select_sources(world_from_cam0):
                 assert kf.gray is not None
                 src_from_ref = invert_transform(kf.world_from_cam0) @ world_from_cam0

@@ -20,12 +20,13 @@ CAM1_FROM_CAM0 = np.eye(4)
 CAM1_FROM_CAM0[0, 3] = -0.11  # right camera 11 cm to the right of the left one
 
 
-def make_mapper(num_planes: int = 48) -> DenseMapper:
+def make_mapper(num_planes: int = 48, depth_scale: float = 1.0) -> DenseMapper:
     intr = CameraIntrinsics(W, H, 230.0, 230.0, 160.0, 120.0)
     rig = StereoRig(Undistorter(intr), Undistorter(intr), K, K, CAM1_FROM_CAM0)
     cfg = MapperConfig(
         tsdf=TsdfConfig(voxel_m=0.02, max_depth_m=4.0),
         sweep=SweepConfig(depth_min_m=0.5, depth_max_m=6.0, num_planes=num_planes),
+        depth_scale=depth_scale,
     )
     return DenseMapper(cfg, rig)
 
@@ -67,9 +68,10 @@ def accuracy_completion(scene, frames, mesh):
     return acc, float(np.mean(dist < 0.05))
 
 
-def test_stereo_sweep_fusion_meets_accuracy_and_completion(room):
+@pytest.mark.parametrize("depth_scale", [1.0, 0.5])
+def test_stereo_sweep_fusion_meets_accuracy_and_completion(room, depth_scale):
     scene, frames = room
-    mapper = make_mapper()
+    mapper = make_mapper(depth_scale=depth_scale)
     for i, (pose, img, right, _) in enumerate(frames):
         rep = mapper.add_keyframe(i * 100_000_000, img, right, pose)
         assert rep.num_sources >= 1
