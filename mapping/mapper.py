@@ -79,7 +79,7 @@ class MapperConfig:
     depth_weight_ref_m: float | None = 1.5
     """Stereo depth noise grows with z^2: fuse each pixel with weight min(1, (ref / z)^2) so
     near observations dominate; None = uniform weights (sensor depth gets uniform weights)."""
-    mesh_min_weight: float = 0.25
+    mesh_min_weight: float = 0.2
     """Mesh only where every cube corner has fused weight above this (weights are 1 per
     keyframe up to 1.5 m, (1.5 / z)^2 beyond), which removes thin surfaces that one noisy far
     depth map created; 0 keeps everything observed."""

@@ -20,7 +20,7 @@ CAM1_FROM_CAM0 = np.eye(4)
 CAM1_FROM_CAM0[0, 3] = -0.11  # right camera 11 cm to the right of the left one
 
 
-def make_mapper(num_planes: int = 48, depth_scale: float = 1.0) -> DenseMapper:
+def make_mapper(num_planes: int = 96, depth_scale: float = 1.0) -> DenseMapper:
     intr = CameraIntrinsics(W, H, 230.0, 230.0, 160.0, 120.0)
     rig = StereoRig(Undistorter(intr), Undistorter(intr), K, K, CAM1_FROM_CAM0)
     cfg = MapperConfig(

@@ -248,16 +248,20 @@ def bench_room(seq, kf_every: int, estimate_path: Path | None) -> dict:
     )
     ids = list(range(0, seq.num_frames, kf_every))
     sweep_mapper = DenseMapper.from_calibration(calib, cfg)
+    half_cfg = MapperConfig(tsdf=cfg.tsdf, sweep=cfg.sweep, depth_scale=0.5)
+    half_mapper = DenseMapper.from_calibration(calib, half_cfg)
     gt_mapper = DenseMapper.from_calibration(
         calib, MapperConfig(tsdf=cfg.tsdf, mesh_min_weight=0.0)
     )
-    poses, depths, per_kf = [], [], []
+    poses, depths, per_kf, per_kf_half = [], [], [], []
     for i in ids:
         frame = seq.frame(i)
         pose = seq.world_from_cam(i, 0)
         depth = und0(seq.depth(i), cv2.INTER_NEAREST)
         rep = sweep_mapper.add_keyframe(frame.t_ns, frame.left, frame.right, pose)
         per_kf.append(rep.depth_ms + rep.fusion_ms)
+        rep = half_mapper.add_keyframe(frame.t_ns, frame.left, frame.right, pose)
+        per_kf_half.append(rep.depth_ms + rep.fusion_ms)
         gt_mapper.add_keyframe(frame.t_ns, frame.left, None, pose, depth_m=depth)
         poses.append(pose)
         depths.append(depth)
@@ -269,6 +273,9 @@ def bench_room(seq, kf_every: int, estimate_path: Path | None) -> dict:
         "mapper_ms_per_keyframe_median": statistics.median(per_kf),
         "mapper_ms_per_keyframe_p90": float(np.quantile(per_kf, 0.9)),
         "keeps_up": statistics.median(per_kf) < kf_interval_ms,
+        "half_res_mapper_ms_per_keyframe_median": statistics.median(per_kf_half),
+        "half_res_keeps_up": statistics.median(per_kf_half) < kf_interval_ms,
+        "sweep_gt_poses_half_res": mesh_quality(seq.scene, half_mapper.mesh(), samples),
         "sweep_gt_poses": mesh_quality(seq.scene, sweep_mapper.mesh(), samples),
         "sweep_gt_poses_min_weight0": mesh_quality(seq.scene, sweep_mapper.mesh(0.0), samples),
         "exact_depth_gt_poses": mesh_quality(seq.scene, gt_mapper.mesh(), samples),
@@ -406,8 +413,13 @@ def main(argv: list[str] | None = None) -> int:
         f"[room] {r['keyframes']} keyframes, mapper {r['mapper_ms_per_keyframe_median']:.0f} ms/kf "
         f"(p90 {r['mapper_ms_per_keyframe_p90']:.0f}) vs interval {r['keyframe_interval_ms']:.0f} ms"
     )
+    print(
+        f"[room] half resolution: mapper {r['half_res_mapper_ms_per_keyframe_median']:.0f} ms/kf, "
+        f"keeps up: {r['half_res_keeps_up']}"
+    )
     for key in (
         "sweep_gt_poses",
+        "sweep_gt_poses_half_res",
         "sweep_gt_poses_min_weight0",
         "exact_depth_gt_poses",
         "sweep_estimated_poses",
