@@ -51,6 +51,8 @@ class FrontendConfig:
     """Fewer inliers than this is a tracking loss."""
     keyframe_min_tracked_ratio: float = 0.7
     """New keyframe when fewer than this fraction of the last keyframe's landmarks are tracked."""
+    keyframe_min_interval_s: float = 0.15
+    """No new keyframe sooner than this after the last one, unless half its landmarks are gone."""
     keyframe_max_interval_s: float = 0.5
     """New keyframe at least this often, seconds."""
     keyframe_min_parallax_px: float = 25.0

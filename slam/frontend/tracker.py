@@ -332,10 +332,14 @@ class FrontEnd:
 
     def _need_keyframe(self, t_ns: int, num_inliers: int) -> bool:
         cfg = self.cfg
-        if (t_ns - self.kf_t_ns) * 1e-9 >= cfg.keyframe_max_interval_s:
+        since_s = (t_ns - self.kf_t_ns) * 1e-9
+        if since_s >= cfg.keyframe_max_interval_s:
             return True
         still = [self.kf_px[i] for i in self.ids.tolist() if i in self.kf_px]
-        if len(still) < cfg.keyframe_min_tracked_ratio * max(self.kf_num_landmarks, 1):
+        ratio = len(still) / max(self.kf_num_landmarks, 1)
+        if since_s < cfg.keyframe_min_interval_s and ratio >= 0.5:
+            return False  # fast motion must not make every frame a keyframe
+        if ratio < cfg.keyframe_min_tracked_ratio:
             return True
         if num_inliers < 3 * cfg.min_pnp_inliers:
             return True
