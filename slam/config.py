@@ -14,6 +14,7 @@ from typing import Any
 
 import yaml
 
+from mapping.stage import MapperStageConfig
 from slam.backend.config import BackendConfig
 from slam.errors import SlamError
 from slam.loop.config import LoopClosureConfig
@@ -107,6 +108,7 @@ class SlamConfig:
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
     loop: LoopClosureConfig = field(default_factory=LoopClosureConfig)
+    mapping: MapperStageConfig = field(default_factory=MapperStageConfig)
     player: PlayerConfig = field(default_factory=PlayerConfig)
     viz: VizConfig = field(default_factory=VizConfig)
 

@@ -149,3 +149,25 @@ class LoopCorrection:
     map_generation: int  # increments with every correction
     map_from_odom: dict[int, np.ndarray]
     corrected_keyframe_poses: dict[int, np.ndarray]
+
+
+@dataclass(frozen=True, eq=False)
+class MapperReport:
+    """What the dense mapper did with one keyframe (and how far behind it is)."""
+
+    t_ns: int
+    skipped: bool  # not fused: the camera had not moved since the last fused keyframe
+    depth_ms: float
+    fusion_ms: float
+    blocks: int  # allocated TSDF voxel blocks
+
+
+@dataclass(frozen=True, eq=False)
+class MeshSnapshot:
+    """The current dense mesh (world frame, metres)."""
+
+    t_ns: int
+    vertices_m: np.ndarray  # (N, 3) float32
+    faces: np.ndarray  # (M, 3) int32
+    normals: np.ndarray  # (N, 3) float32
+    colors_rgb: np.ndarray | None  # (N, 3) uint8

@@ -26,12 +26,20 @@ from typing import Any
 import numpy as np
 
 from datasets.sequence import Sequence
+from mapping.stage import MapperStage
 from slam.backend_stage import BackendStage
 from slam.config import SlamConfig, config_to_yaml
 from slam.frontend.tracker import FrontEnd
 from slam.imu_buffer import ImuBuffer
 from slam.loop.stage import LoopClosureStage
-from slam.messages import BackendOutput, ImuSample, Keyframe, StereoFrame, TrackingResult
+from slam.messages import (
+    BackendOutput,
+    ImuSample,
+    Keyframe,
+    MeshSnapshot,
+    StereoFrame,
+    TrackingResult,
+)
 from slam.output import trajectory_from_poses, write_run_outputs
 from slam.stage import Latest, Stage, StageError
 from slam.trajectory import Trajectory
@@ -198,6 +206,15 @@ def run_slam(
         )
         keyframe_consumers.append(backend)
         imu_consumers.append(backend)
+    mapper: MapperStage | None = None
+    if cfg.mapping.enabled:
+
+        def on_mesh(snapshot: MeshSnapshot) -> None:
+            if viewer is not None:
+                viewer.put(snapshot, block=snapshot.t_ns == 0)  # the final mesh always gets in
+
+        mapper = MapperStage(seq.calibration, cfg.mapping, on_mesh, threaded)
+        keyframe_consumers.append(mapper)
     if cfg.loop_closure:
         from slam.loop.viz import log_loop_correction
         from slam.messages import LoopCorrection
@@ -279,6 +296,7 @@ def run_slam(
             "peak_rss_mb": peak_rss_mb(),
             "peak_rss_children_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0,
             "loop_closure": None if loop_stage is None else loop_stage.stats(),
+            "mapping": None if mapper is None else mapper.stats(),
             "relocalisations": fe.relocalisations,
             "imu_bridged_losses": fe.imu_bridged,
             "backend": None
@@ -389,19 +407,34 @@ def run_slam(
             s.abort()
     finally:
         for s in stages:  # in wiring order: upstream stages finish before their consumers
-            s.close()
-            s.join()
+            if s is not viewer:
+                s.close()
+                s.join()
         if bar is not None:
             bar.close()
+        traj, kfs, _ = recorder.snapshot()
+        kfs = keyframe_trajectory(kfs)
+        extra = loop_closed(traj)
+        if mapper is not None and not interrupted and mapper.error is None:
+            final = {int(t): p for t, p in zip(kfs.t_ns, kfs.matrices(), strict=True)}
+            if loop_stage is not None:
+                with recorder._lock:
+                    times = dict(recorder.keyframe_times)
+                for kid, pose in loop_stage.corrected_keyframe_poses().items():
+                    if kid in times:
+                        final[times[kid]] = pose
+            if progress:
+                print("dense mapping: final re-integration and mesh ...", flush=True)
+            mapper.finish(final, None if out_dir is None else Path(out_dir) / "mesh.ply")
+        if viewer is not None:
+            viewer.close()
+            viewer.join()
         if error is None:
             error = next((s.error for s in stages if s.error is not None), None)
         if rec is not None:
             rec.flush()
             rec.disconnect()
         stats = make_stats()
-        traj, kfs, _ = recorder.snapshot()
-        kfs = keyframe_trajectory(kfs)
-        extra = loop_closed(traj)
         if out_dir is not None:
             write_run_outputs(out_dir, traj, kfs, stats, config_to_yaml(cfg), extra)
     return RunResult(

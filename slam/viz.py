@@ -17,7 +17,7 @@ from slam.calibration import Calibration
 from slam.config import VizConfig
 from slam.errors import SlamError
 from slam.geometry import invert_transform
-from slam.messages import Estimate, Keyframe, TrackingResult
+from slam.messages import Estimate, Keyframe, MeshSnapshot, TrackingResult
 from slam.stage import Stage
 from slam.trajectory import Trajectory
 
@@ -131,6 +131,19 @@ class RerunStage(Stage):
                     "world/landmarks/new",
                     rr.Points3D(msg.points_world_vo, colors=[120, 120, 255], radii=0.015),
                 )
+        elif isinstance(msg, MeshSnapshot):
+            if msg.t_ns:
+                self._time(msg.t_ns)
+            self.rec.log(
+                "world/mesh",
+                self.rr.Mesh3D(
+                    vertex_positions=msg.vertices_m,
+                    triangle_indices=msg.faces,
+                    vertex_normals=msg.normals,
+                    vertex_colors=msg.colors_rgb,
+                ),
+                static=msg.t_ns == 0,
+            )
         elif isinstance(msg, Estimate):
             self._time(msg.t_ns)
             if len(msg.landmark_positions_world):

@@ -24,6 +24,9 @@ outputs in --out DIR (written atomically, also after Ctrl-C or a failure):
   stats.json       frames in/tracked/dropped, tracking losses, real-time factor,
                    per-stage latency p50/p90/p99/max, peak memory
   config.yaml      the resolved configuration (reusable with --config)
+  trajectory_loop_closed.tum   with loop closure on: every frame through its keyframe's
+                   pose-graph correction
+  mesh.ply         with --mesh: the dense mesh (binary PLY: MeshLab, Open3D)
 
 then score it:  slam eval ape SEQ DIR --align se3
 """
@@ -64,6 +67,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="run every stage in one thread in time order (deterministic, for debugging)",
     )
     p.add_argument("--max-frames", type=int, default=None, help="stop after N frames")
+    p.add_argument(
+        "--mesh",
+        action="store_true",
+        help="dense mapping (plane sweep + TSDF in a worker process): writes mesh.ply and "
+        "shows the mesh in rerun",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=handle)
 
@@ -98,6 +107,10 @@ def handle(args: argparse.Namespace) -> int:
         cfg.player.sequential = True
     if args.max_frames is not None:
         cfg.player.max_frames = args.max_frames
+    if args.mesh:
+        import dataclasses
+
+        cfg.mapping = dataclasses.replace(cfg.mapping, enabled=True)
     if not seq.calibration.is_stereo:
         raise SlamError(f"{seq.name}: the pipeline needs a stereo sequence (cam0 and cam1)")
     result = run_slam(seq, cfg, args.out, args.rerun, progress=not args.no_progress)

@@ -1,0 +1,331 @@
+"""The dense mapper as a pipeline stage: keyframes in, mesh out, in a worker process.
+
+Plane sweep and TSDF fusion are heavy numpy/OpenCV work; in a worker process they never stall
+the front end. This stage (a thread of the main process) forwards keyframes with their pose at
+creation, drops a keyframe when the worker is more than ``max_backlog`` keyframes behind (the
+lag is counted and reported, never queued without bound), and receives per-keyframe reports and
+periodic mesh snapshots (for rerun). At the end, keyframe poses are replaced by the final
+(back-end optimised, loop-closed) ones: the mapper **re-integrates** the keyframes that moved
+(de-integrate with the old pose, integrate with the new), then writes ``mesh.ply``.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from slam.calibration import Calibration
+from slam.messages import EndOfStream, Keyframe, MapperReport, MeshSnapshot
+from slam.stage import Stage, StageError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class MapperStageConfig:
+    """The live mapper (``mapping`` in the run config)."""
+
+    enabled: bool = False
+    """Dense mapping during `slam run` (also `slam run --mesh`)."""
+    voxel_m: float = 0.02
+    """TSDF voxel size, metres."""
+    max_depth_m: float = 4.0
+    """Depths beyond this are not fused."""
+    depth_scale: float = 0.5
+    """Plane sweep at this fraction of the image size (0.5 is ~4x cheaper than full size)."""
+    num_planes: int = 96
+    """Plane-sweep depth hypotheses (inverse-depth sampled)."""
+    max_backlog: int = 4
+    """Keyframes waiting for the mapper; beyond that a keyframe is dropped (and counted)."""
+    mesh_every_s: float = 5.0
+    """Send a mesh snapshot to the viewer at most this often (marching cubes is not free)."""
+    final_reintegration: bool = True
+    """At the end, re-integrate keyframes whose final (optimised, loop-closed) pose moved."""
+
+
+@dataclass(frozen=True, eq=False)
+class _MapKeyframe:
+    t_ns: int
+    image_left: np.ndarray
+    image_right: np.ndarray | None
+    world_from_cam0: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class _Finish:
+    world_from_cam0_by_t: dict[int, np.ndarray]
+    mesh_path: str | None
+
+
+@dataclass
+class _MapperSummary:
+    fused: int = 0
+    skipped_static: int = 0
+    reintegrated: int = 0
+    vertices: int = 0
+    faces: int = 0
+    mesh_path: str | None = None
+    final_ms: float = 0.0
+    error: str | None = None
+    depth_ms: list[float] = field(default_factory=list)
+    fusion_ms: list[float] = field(default_factory=list)
+
+
+def _make_mapper(calib: Calibration, cfg: MapperStageConfig) -> Any:
+    from mapping.mapper import DenseMapper, MapperConfig
+    from mapping.planesweep import SweepConfig
+    from mapping.tsdf import TsdfConfig
+
+    config = MapperConfig(
+        tsdf=TsdfConfig(voxel_m=cfg.voxel_m, max_depth_m=cfg.max_depth_m),
+        sweep=SweepConfig(depth_min_m=0.4, depth_max_m=8.0, num_planes=cfg.num_planes),
+        depth_scale=cfg.depth_scale,
+    )
+    return DenseMapper.from_calibration(calib, config)
+
+
+def _snapshot(mapper: Any, t_ns: int) -> MeshSnapshot | None:
+    mesh = mapper.mesh()
+    if mesh.num_vertices == 0:
+        return None
+    return MeshSnapshot(t_ns, mesh.vertices_m, mesh.faces, mesh.normals, mesh.colors_rgb)
+
+
+def _worker(calib: Calibration, cfg: MapperStageConfig, inbox: Any, outbox: Any) -> None:
+    """The worker process: fuse keyframes, report, snapshot meshes, finish with mesh.ply."""
+    try:
+        mapper = _make_mapper(calib, cfg)
+    except Exception as exc:
+        outbox.put(RuntimeError(f"mapper start failed: {type(exc).__name__}: {exc}"))
+        return
+    outbox.put("ready")
+    last_mesh = time.perf_counter()
+    while True:
+        msg = inbox.get()
+        try:
+            if isinstance(msg, _MapKeyframe):
+                r = mapper.add_keyframe(
+                    msg.t_ns, msg.image_left, msg.image_right, msg.world_from_cam0
+                )
+                outbox.put(MapperReport(r.t_ns, r.skipped, r.depth_ms, r.fusion_ms, r.blocks))
+                if time.perf_counter() - last_mesh > cfg.mesh_every_s:
+                    snap = _snapshot(mapper, msg.t_ns)
+                    if snap is not None:
+                        outbox.put(snap)
+                    last_mesh = time.perf_counter()
+            elif isinstance(msg, _Finish):
+                t0 = time.perf_counter()
+                moved = (
+                    mapper.update_poses(msg.world_from_cam0_by_t) if msg.world_from_cam0_by_t else 0
+                )
+                mesh = mapper.mesh()
+                summary = _MapperSummary(
+                    reintegrated=moved, vertices=mesh.num_vertices, faces=len(mesh.faces)
+                )
+                if msg.mesh_path and mesh.num_vertices:
+                    from mapping.ply import write_ply_mesh
+
+                    write_ply_mesh(
+                        msg.mesh_path, mesh.vertices_m, mesh.faces, mesh.normals, mesh.colors_rgb
+                    )
+                    summary.mesh_path = msg.mesh_path
+                summary.final_ms = (time.perf_counter() - t0) * 1e3
+                if mesh.num_vertices:
+                    outbox.put(
+                        MeshSnapshot(0, mesh.vertices_m, mesh.faces, mesh.normals, mesh.colors_rgb)
+                    )
+                outbox.put(summary)
+            elif isinstance(msg, EndOfStream):
+                break
+        except Exception as exc:  # reported by the stage with its name
+            outbox.put(RuntimeError(f"{type(exc).__name__}: {exc}"))
+            break
+
+
+class MapperStage(Stage):
+    """Forwards keyframes to the mapper worker and collects its reports and meshes."""
+
+    def __init__(
+        self,
+        calib: Calibration,
+        cfg: MapperStageConfig,
+        on_mesh: Callable[[MeshSnapshot], None],
+        threaded: bool,
+    ):
+        super().__init__("mapper", maxsize=256, threaded=threaded)
+        self.cfg = cfg
+        self.calib = calib
+        self.on_mesh = on_mesh
+        self.body_from_cam0 = calib.cameras[0].body_from_cam
+        self.sent: list[int] = []
+        self.reports: list[MapperReport] = []
+        self.dropped_lag = 0
+        self.max_backlog_seen = 0
+        self.max_lag_s = 0.0
+        self.summary = _MapperSummary()
+        self._lock = threading.Lock()
+        self._done = threading.Event()
+        self.use_process = threaded
+        if self.use_process:
+            ctx = mp.get_context("spawn")
+            self._inbox: Any = ctx.Queue()
+            self._outbox: Any = ctx.Queue()
+            self._proc = ctx.Process(
+                target=_worker,
+                args=(calib, cfg, self._inbox, self._outbox),
+                daemon=True,
+                name="slam-mapper",
+            )
+            self._proc.start()
+            try:
+                ready = self._outbox.get(timeout=120)
+            except queue.Empty:
+                ready = None
+            if ready != "ready":
+                self._proc.terminate()
+                raise RuntimeError(f"the mapper worker process did not start: {ready}")
+            self._rx = threading.Thread(target=self._receive, name="mapper-rx", daemon=True)
+            self._rx.start()
+        else:
+            self._mapper = _make_mapper(calib, cfg)
+
+    # -- results -------------------------------------------------------------------------
+    def _handle_output(self, item: Any) -> bool:
+        """Returns True when the worker has finished."""
+        if isinstance(item, MapperReport):
+            with self._lock:
+                self.reports.append(item)
+                if self.sent:
+                    self.max_lag_s = max(self.max_lag_s, (self.sent[-1] - item.t_ns) * 1e-9)
+        elif isinstance(item, MeshSnapshot):
+            self.on_mesh(item)
+        elif isinstance(item, _MapperSummary):
+            with self._lock:
+                self.summary = item
+            return True
+        elif isinstance(item, Exception):
+            self.error = StageError(self.name, item, "")
+            log.error("%s", self.error)
+            return True
+        return False
+
+    def _receive(self) -> None:
+        while True:
+            try:
+                item = self._outbox.get(timeout=0.5)
+            except queue.Empty:
+                if not self._proc.is_alive():
+                    if not self._done.is_set() and self.error is None:
+                        self.error = StageError(
+                            self.name, RuntimeError("the mapper worker process died"), ""
+                        )
+                    self._done.set()
+                    return
+                continue
+            if self._handle_output(item):
+                self._done.set()
+                return
+
+    # -- stage -----------------------------------------------------------------------------
+    def process(self, msg: Any) -> None:
+        if not isinstance(msg, Keyframe):
+            return
+        pose = msg.world_from_body_vo @ self.body_from_cam0
+        item = _MapKeyframe(msg.t_ns, msg.image_left, msg.image_right, pose)
+        if not self.use_process:
+            r = self._mapper.add_keyframe(item.t_ns, item.image_left, item.image_right, pose)
+            self.sent.append(msg.t_ns)
+            self._handle_output(MapperReport(r.t_ns, r.skipped, r.depth_ms, r.fusion_ms, r.blocks))
+            return
+        with self._lock:
+            backlog = len(self.sent) - len(self.reports)
+        self.max_backlog_seen = max(self.max_backlog_seen, backlog)
+        if backlog >= self.cfg.max_backlog:
+            self.dropped_lag += 1
+            return
+        self.sent.append(msg.t_ns)
+        self._inbox.put(item)
+
+    def finish(self, final_world_from_body: dict[int, np.ndarray], mesh_path: Path | None) -> None:
+        """Re-integrate with the final keyframe poses (by t_ns) and write ``mesh_path``."""
+        poses = (
+            {
+                int(t): np.asarray(p) @ self.body_from_cam0
+                for t, p in final_world_from_body.items()
+                if int(t) in set(self.sent)
+            }
+            if self.cfg.final_reintegration
+            else {}
+        )
+        request = _Finish(poses, None if mesh_path is None else str(mesh_path))
+        if not self.use_process:
+            t0 = time.perf_counter()
+            moved = self._mapper.update_poses(request.world_from_cam0_by_t) if poses else 0
+            mesh = self._mapper.mesh()
+            s = _MapperSummary(
+                reintegrated=moved, vertices=mesh.num_vertices, faces=len(mesh.faces)
+            )
+            if mesh_path is not None and mesh.num_vertices:
+                from mapping.ply import write_ply_mesh
+
+                write_ply_mesh(
+                    mesh_path, mesh.vertices_m, mesh.faces, mesh.normals, mesh.colors_rgb
+                )
+                s.mesh_path = str(mesh_path)
+            s.final_ms = (time.perf_counter() - t0) * 1e3
+            self.summary = s
+            if mesh.num_vertices:
+                self.on_mesh(
+                    MeshSnapshot(0, mesh.vertices_m, mesh.faces, mesh.normals, mesh.colors_rgb)
+                )
+            return
+        if not self._proc.is_alive():
+            return
+        self._inbox.put(request)
+        self._done.wait(timeout=600)
+        self._inbox.put(EndOfStream())
+        self._proc.join(timeout=10)
+        if self._proc.is_alive():
+            self._proc.terminate()
+
+    def abort(self) -> None:
+        super().abort()
+        if self.use_process and self._proc.is_alive():
+            self._proc.terminate()
+
+    def stats(self) -> dict[str, Any]:
+        with self._lock:
+            reports = list(self.reports)
+        fused = [r for r in reports if not r.skipped]
+
+        def pct(vals: list[float]) -> dict[str, float]:
+            if not vals:
+                return {"count": 0}
+            a = np.asarray(vals)
+            return {"count": len(a), "p50_ms": float(np.median(a)), "max_ms": float(a.max())}
+
+        return {
+            "mode": "process" if self.use_process else "in-process",
+            "keyframes_sent": len(self.sent),
+            "keyframes_fused": len(fused),
+            "keyframes_skipped_static": len(reports) - len(fused),
+            "keyframes_dropped_lag": self.dropped_lag,
+            "max_backlog": self.max_backlog_seen,
+            "max_lag_s": self.max_lag_s,
+            "depth": pct([r.depth_ms for r in fused]),
+            "fusion": pct([r.fusion_ms for r in fused]),
+            "final_reintegrated": self.summary.reintegrated,
+            "final_ms": self.summary.final_ms,
+            "mesh_vertices": self.summary.vertices,
+            "mesh_faces": self.summary.faces,
+            "mesh_path": self.summary.mesh_path,
+        }
