@@ -90,3 +90,30 @@ def test_help_teaches():
     assert (
         "examples:" in proc.stdout and "--rerun" in proc.stdout and "slam eval ape" in proc.stdout
     )
+
+
+def test_run_with_mesh_writes_a_ply(seq_path, tmp_path):
+    from mapping.ply import read_ply
+
+    out = tmp_path / "run"
+    argv = [
+        "run",
+        str(seq_path),
+        "--out",
+        str(out),
+        "--speed",
+        "max",
+        "--mesh",
+        "--config",
+        "stereo-vo",
+        "--no-progress",
+    ]
+    assert slam(argv) == 0
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["mapping"]["keyframes_fused"] >= 1
+    ply = read_ply(out / "mesh.ply")
+    assert len(ply.faces) > 1000
+    v = ply.vertex
+    # the room is 8 x 6 x 3 m: the mesh stays inside a box around it
+    for axis in ("x", "y", "z"):
+        assert abs(v[axis]).max() < 10.0

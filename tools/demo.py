@@ -74,7 +74,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(
         f"\nDone. Open the recording with `.venv/bin/rerun {out / 'run.rrd'}`; "
-        f"the trajectory is in {run}/trajectory.tum, the error plot in {out / 'ape.png'}."
+        f"the trajectory is in {run}/trajectory.tum (loop-closed: trajectory_loop_closed.tum), "
+        f"the mesh in {run}/mesh.ply (MeshLab, Open3D), the error plot in {out / 'ape.png'}."
     )
     return 0
 
