@@ -102,6 +102,12 @@ def _snapshot(mapper: Any, t_ns: int) -> MeshSnapshot | None:
 
 def _worker(calib: Calibration, cfg: MapperStageConfig, inbox: Any, outbox: Any) -> None:
     """The worker process: fuse keyframes, report, snapshot meshes, finish with mesh.ply."""
+    import os
+
+    try:
+        os.nice(10)  # the lowest priority of the pipeline: it only has to keep up on average
+    except OSError:
+        pass
     try:
         mapper = _make_mapper(calib, cfg)
     except Exception as exc:

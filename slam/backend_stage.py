@@ -28,6 +28,17 @@ from slam.stage import Latest, Stage
 log = logging.getLogger(__name__)
 
 
+def _lower_priority(increment: int) -> None:
+    """Yield the CPU to the front end (the latency-critical thread) on a loaded machine: the
+    back end only has to keep up on average, the front end must answer every frame."""
+    import os
+
+    try:
+        os.nice(increment)
+    except OSError:  # not permitted here: run at normal priority
+        pass
+
+
 class _Estimator:
     """Wraps VioBackend: keeps every keyframe's latest pose and reports state changes."""
 
@@ -70,6 +81,7 @@ class _Estimator:
 
 def _worker(calib: Calibration, cfg: BackendConfig, inbox: Any, outbox: Any) -> None:
     """The worker process: feed the estimator, send back outputs, then its final stats."""
+    _lower_priority(5)
     estimator = _Estimator(calib, cfg)
     outbox.put("ready")
     while True:

@@ -32,6 +32,7 @@ from slam.config import SlamConfig, config_to_yaml
 from slam.frontend.tracker import FrontEnd
 from slam.imu_buffer import ImuBuffer
 from slam.loop.stage import LoopClosureStage
+from slam.loop.worker import LoopClosureWorkerStage
 from slam.messages import (
     BackendOutput,
     ImuSample,
@@ -177,7 +178,7 @@ def run_slam(
     frontend = FrontEnd(
         seq.calibration, cfg.frontend, imu_buffer, latest_estimate.get, recorder.reframe
     )
-    loop_stage: LoopClosureStage | None = None
+    loop_stage: LoopClosureStage | LoopClosureWorkerStage | None = None
     keyframe_consumers: list[Stage] = []
     imu_consumers: list[Stage] = []
     backend: BackendStage | None = None
@@ -234,9 +235,14 @@ def run_slam(
             pose = None if backend is None else backend.keyframe_poses.get(kid)
             return pose if pose is not None else frontend.kf_poses.get(kid)
 
-        loop_stage = LoopClosureStage(
-            seq.calibration, cfg.loop, odometry_pose, on_loop_correction, threaded
+        loop_stage = (
+            LoopClosureWorkerStage(seq.calibration, cfg.loop, odometry_pose, on_loop_correction)
+            if threaded
+            else LoopClosureStage(
+                seq.calibration, cfg.loop, odometry_pose, on_loop_correction, threaded
+            )
         )
+        loop_stage.nice = 10  # background work: never at the front end's expense
         keyframe_consumers.append(loop_stage)
         frontend.relocaliser = loop_stage.relocaliser
         if viewer is not None:
@@ -329,11 +335,10 @@ def run_slam(
         from slam.loop.closer import loop_closed_poses
 
         corrections = loop_stage.keyframe_corrections()
-        closer = loop_stage.closer
-        with loop_stage._lock:  # the loop stage's thread adds keyframes concurrently
-            kids = [k for k in corrections if k in closer.t_ns_of]
-            kf_t = np.array([closer.t_ns_of[k] for k in kids], dtype=np.int64)
-            kf_seg = np.array([closer.segment_of[k] for k in kids])
+        t_ns_of, segment_of = loop_stage.keyframe_times_and_segments()
+        kids = [k for k in corrections if k in t_ns_of]
+        kf_t = np.array([t_ns_of[k] for k in kids], dtype=np.int64)
+        kf_seg = np.array([segment_of[k] for k in kids])
         if not kids:
             return {}
         with recorder._lock:

@@ -38,7 +38,14 @@ REFRESH_LAST_KEYFRAMES = 30  # odometry poses re-read per new keyframe (the back
 
 
 def _warm_up() -> bool:
-    """Import GTSAM in the worker before the first loop needs it."""
+    """Import GTSAM in the worker before the first loop needs it, at a lower priority than
+    the front end (pose-graph optimisation only has to finish soon, not within a frame)."""
+    import os
+
+    try:
+        os.nice(5)
+    except OSError:
+        pass
     import slam.posegraph  # noqa: F401
 
     return True
@@ -155,6 +162,11 @@ class LoopClosureStage(Stage):
         with self._lock:
             return self.closer.keyframe_map_from_odom()
 
+    def keyframe_times_and_segments(self) -> tuple[dict[int, int], dict[int, int]]:
+        """Keyframe id -> t_ns, and keyframe id -> map segment, of every keyframe seen."""
+        with self._lock:
+            return dict(self.closer.t_ns_of), dict(self.closer.segment_of)
+
     def corrected_keyframe_poses(self) -> dict[int, np.ndarray]:
         with self._lock:
             return self.closer.corrected_poses()
@@ -170,6 +182,8 @@ class LoopClosureStage(Stage):
                     "match_kf": r.match_kf_id,
                     "inliers": r.inliers,
                     "t_ns": r.t_ns,
+                    "query_t_ns": self.closer.t_ns_of.get(r.query_kf_id),
+                    "match_t_ns": self.closer.t_ns_of.get(r.match_kf_id),
                     "active": r.active,
                 }
                 for r in self.closer.loops
