@@ -20,6 +20,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from slam.errors import SlamError
 
 SUITE_VERSION = 1
@@ -151,6 +153,40 @@ def evaluate_run(seq_path: Path, run_dir: Path) -> dict[str, Any]:
     return out
 
 
+def false_loops(seq_path: Path, stats: dict[str, Any]) -> int | None:
+    """Accepted loops whose two keyframes were not at the same place by the ground truth.
+
+    Same place: body positions within 2 m and camera viewing directions within 45 degrees (a
+    verified loop needs shared structure in view). None without ground truth or loops.
+    """
+    loops = (stats.get("loop_closure") or {}).get("loops")
+    if not loops:
+        return 0 if loops is not None else None
+    from datasets.open import open_sequence
+    from slam.geometry import quat_wxyz_to_matrix
+
+    gt = open_sequence(seq_path).ground_truth
+    if gt is None or len(gt) == 0:
+        return None
+
+    def pose_at(t_ns: int) -> tuple[np.ndarray, np.ndarray]:
+        i = int(np.clip(np.searchsorted(gt.t_ns, t_ns), 0, len(gt) - 1))
+        return gt.positions_m[i], quat_wxyz_to_matrix(gt.q_wxyz[i])
+
+    false = 0
+    for loop in loops:
+        if loop.get("query_t_ns") is None or loop.get("match_t_ns") is None:
+            continue
+        pa, ra = pose_at(int(loop["query_t_ns"]))
+        pb, rb = pose_at(int(loop["match_t_ns"]))
+        # EuRoC-style body: the camera looks along body x/z; compare all axes' agreement
+        cos = (np.trace(ra.T @ rb) - 1.0) / 2.0
+        angle_deg = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+        if np.linalg.norm(pa - pb) > 2.0 or angle_deg > 45.0:
+            false += 1
+    return false
+
+
 def summarise(name: str, stats: dict[str, Any], acc: dict[str, Any]) -> dict[str, Any]:
     be = stats.get("backend") or {}
     fe = stats.get("latency", {}).get("frontend_frame", {})
@@ -184,6 +220,7 @@ COLUMNS = (
     ("drift_pct", "drift (%)", "{:.3f}"),
     ("completion_pct", "completion (%)", "{:.1f}"),
     ("loops_accepted", "loops", "{}"),
+    ("false_loops", "false loops", "{}"),
     ("init_s", "init (s)", "{:.2f}"),
     ("real_time_factor", "RTF", "{:.2f}"),
     ("frontend_p50_ms", "FE p50 (ms)", "{:.1f}"),
@@ -248,6 +285,7 @@ def run_benchmark(
         print(f"running {name} ...", flush=True)
         stats = run_one(path, run_dir, preset, extra_args or [])
         acc = evaluate_run(path, run_dir)
+        acc["false_loops"] = false_loops(path, stats)
         row = summarise(name, stats, acc)
         write_atomic(run_dir / "bench.json", json.dumps(row, indent=2) + "\n")
         rows.append(row)
