@@ -34,7 +34,7 @@ class FrontendConfig:
     """Minimum distance between features, pixels."""
     corner_quality: float = 0.01
     """goodFeaturesToTrack quality level."""
-    klt_window_px: int = 21
+    klt_window_px: int = 17
     """KLT window side, pixels."""
     klt_pyramid_levels: int = 3
     """KLT pyramid levels above the base image."""
