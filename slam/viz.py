@@ -89,6 +89,7 @@ class RerunStage(Stage):
         self.calib = calib
         self.ground_truth = ground_truth
         self.gt_logged = False
+        self.seen_initialized = False
         self.positions: list[np.ndarray] = []
         self.kf_positions: list[np.ndarray] = []
         self.last_state = ""
@@ -146,6 +147,12 @@ class RerunStage(Stage):
             )
         elif isinstance(msg, Estimate):
             self._time(msg.t_ns)
+            if msg.initialized and not self.seen_initialized:
+                # The back end moved everything into its gravity-aligned world: start the
+                # estimated path afresh and re-anchor the ground truth at the next pose.
+                self.seen_initialized = True
+                self.positions = []
+                self.gt_logged = False
             if len(msg.landmark_positions_world):
                 self.rec.log(
                     "world/landmarks/optimised",
