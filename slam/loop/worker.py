@@ -78,9 +78,18 @@ def _worker(calib: Calibration, cfg: LoopClosureConfig, inbox: Any, outbox: Any)
                     closer.update_odometry(kid, pose)
             event = closer.add_keyframe(msg.keyframe, msg.world_from_body_odom)
             kid = msg.keyframe.keyframe_id
+            # The mirror only serves relocalisation, which matches a new image against stored
+            # landmark descriptors: the keyframe's own whole-image ORB set stays here (it
+            # would double the mirror's memory).
+            desc = closer.store.description(kid)
+            mirror = dataclasses.replace(
+                desc,
+                query_xy_undist=np.zeros((0, 2), desc.query_xy_undist.dtype),
+                query_desc=np.zeros((0, desc.query_desc.shape[1]), desc.query_desc.dtype),
+            )
             outbox.put(
                 _LoopOutput(
-                    closer.store.description(kid),
+                    mirror,
                     msg.world_from_body_odom,
                     "" if event is None else event.status,
                     "" if event is None else event.reason,
