@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+import bisect
 import threading
-from collections import deque
 
 import numpy as np
 
@@ -14,35 +14,38 @@ from slam.messages import ImuSample
 class ImuBuffer:
     """Append-only (in time order) IMU store that forgets samples older than ``keep_ns``.
 
-    The player appends; the front end reads windows. Reads copy out arrays under the lock, so
-    no caller ever sees a half-written sample.
+    The player appends; the front end reads windows (binary search on a list of times: the
+    front end calls this twice per frame, so it must not copy the whole buffer). Reads copy out
+    under the lock, so no caller ever sees a half-written sample.
     """
 
     def __init__(self, keep_ns: int = 5_000_000_000):
         self._lock = threading.Lock()
-        self._samples: deque[ImuSample] = deque()
+        self._t: list[int] = []
+        self._samples: list[ImuSample] = []
         self._keep_ns = keep_ns
 
     def append(self, sample: ImuSample) -> None:
         if not (np.isfinite(sample.gyro_rad_s).all() and np.isfinite(sample.accel_m_s2).all()):
             return  # the back end counts and reports bad samples; the front end just skips them
         with self._lock:
-            if self._samples and sample.t_ns <= self._samples[-1].t_ns:
+            if self._t and sample.t_ns <= self._t[-1]:
                 return
+            self._t.append(sample.t_ns)
             self._samples.append(sample)
-            while self._samples and sample.t_ns - self._samples[0].t_ns > self._keep_ns:
-                self._samples.popleft()
+            if sample.t_ns - self._t[0] > 2 * self._keep_ns:  # trim in bulk: amortised O(1)
+                cut = bisect.bisect_left(self._t, sample.t_ns - self._keep_ns)
+                del self._t[:cut]
+                del self._samples[:cut]
 
     def window(self, t0_ns: int, t1_ns: int) -> list[ImuSample]:
         """Samples with t0 - one sample <= t <= t1 + one sample (enough to cover [t0, t1])."""
         with self._lock:
-            samples = list(self._samples)
-        if not samples:
-            return []
-        times = np.fromiter((s.t_ns for s in samples), dtype=np.int64, count=len(samples))
-        i0 = max(int(np.searchsorted(times, t0_ns, side="right")) - 1, 0)
-        i1 = min(int(np.searchsorted(times, t1_ns, side="left")) + 1, len(samples))
-        return samples[i0:i1]
+            if not self._t:
+                return []
+            i0 = max(bisect.bisect_right(self._t, t0_ns) - 1, 0)
+            i1 = min(bisect.bisect_left(self._t, t1_ns) + 1, len(self._t))
+            return self._samples[i0:i1]
 
 
 def integrate_gyro(
