@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -50,6 +49,7 @@ from datasets.ros2bag import (
     TopicSelection,
 )
 from datasets.sequence import Sequence
+from slam.atomic import atomic_output
 from slam.calibration import CameraCalibration
 from slam.messages import ImuSample, StereoFrame
 
@@ -177,56 +177,48 @@ def write_sequence_mcap(
     out.parent.mkdir(parents=True, exist_ok=True)
     calib = seq.calibration
     offset_ns = int(calib.time_offset_ns)
-    fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=f".{out.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            writer = Writer(fh, chunk_size=chunk_size_bytes, compression=codecs[compression])
-            writer.start(profile="ros2", library="pyvislam")
-            writer.add_metadata(CALIBRATION_METADATA, {"json": json.dumps(calib.to_dict())})
-            writer.add_metadata(
-                SEQUENCE_METADATA,
-                {"name": seq.name, "format_version": "2", "image_chunks": "separate"},
-            )
-            ch = _Channels(writer)
-            # every channel up front, so the first chunk (a small one) defines them all
-            n_cams = len(calib.cameras)
-            cid_info = [
-                ch.channel(CAMERA_INFO_TOPICS[k], "sensor_msgs/msg/CameraInfo")
-                for k in range(n_cams)
-            ]
-            cid_img = [ch.channel(IMAGE_TOPICS[k], "sensor_msgs/msg/Image") for k in range(n_cams)]
-            cid_imu = ch.channel(DEFAULT_IMU_TOPIC, "sensor_msgs/msg/Imu")
-            gt = seq.ground_truth
-            cid_gt = ch.channel(DEFAULT_GT_TOPIC, "geometry_msgs/msg/PoseStamped") if gt else 0
-            window = _Window(writer, chunk_size_bytes)
-            total = seq.num_frames + seq.num_imu + (len(gt) if gt is not None else 0)
-            bar = tqdm(total=total, desc=f"write {out.name}", unit="msg", disable=not progress)
-            for t_ns, _kind, item in _timeline(seq):
-                if isinstance(item, StereoFrame):
-                    images = [item.left] + ([item.right] if item.right is not None else [])
-                    t_cam = t_ns - offset_ns
-                    for k, img in enumerate(images[:n_cams]):
-                        fid = CAMERA_FRAME_IDS[k]
-                        window.small(cid_info[k], t_ns, _camera_info(calib.cameras[k], t_cam, fid))
-                        window.image(cid_img[k], t_ns, cdr.encode_image_mono8(t_cam, fid, img))
-                elif isinstance(item, ImuSample):
-                    data = cdr.encode_imu(t_ns, IMU_FRAME_ID, item.gyro_rad_s, item.accel_m_s2)
-                    window.small(cid_imu, t_ns, data)
-                else:
-                    assert gt is not None
-                    data = cdr.encode_pose_stamped(
-                        t_ns, WORLD_FRAME_ID, gt.positions_m[item], gt.q_wxyz[item]
-                    )
-                    window.small(cid_gt, t_ns, data)
-                bar.update(1)
-            window.emit()
-            bar.close()
-            writer.finish()
-        os.replace(tmp, out)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_output(out) as fh:
+        writer = Writer(fh, chunk_size=chunk_size_bytes, compression=codecs[compression])
+        writer.start(profile="ros2", library="pyvislam")
+        writer.add_metadata(CALIBRATION_METADATA, {"json": json.dumps(calib.to_dict())})
+        writer.add_metadata(
+            SEQUENCE_METADATA,
+            {"name": seq.name, "format_version": "2", "image_chunks": "separate"},
+        )
+        ch = _Channels(writer)
+        # every channel up front, so the first chunk (a small one) defines them all
+        n_cams = len(calib.cameras)
+        cid_info = [
+            ch.channel(CAMERA_INFO_TOPICS[k], "sensor_msgs/msg/CameraInfo") for k in range(n_cams)
+        ]
+        cid_img = [ch.channel(IMAGE_TOPICS[k], "sensor_msgs/msg/Image") for k in range(n_cams)]
+        cid_imu = ch.channel(DEFAULT_IMU_TOPIC, "sensor_msgs/msg/Imu")
+        gt = seq.ground_truth
+        cid_gt = ch.channel(DEFAULT_GT_TOPIC, "geometry_msgs/msg/PoseStamped") if gt else 0
+        window = _Window(writer, chunk_size_bytes)
+        total = seq.num_frames + seq.num_imu + (len(gt) if gt is not None else 0)
+        bar = tqdm(total=total, desc=f"write {out.name}", unit="msg", disable=not progress)
+        for t_ns, _kind, item in _timeline(seq):
+            if isinstance(item, StereoFrame):
+                images = [item.left] + ([item.right] if item.right is not None else [])
+                t_cam = t_ns - offset_ns
+                for k, img in enumerate(images[:n_cams]):
+                    fid = CAMERA_FRAME_IDS[k]
+                    window.small(cid_info[k], t_ns, _camera_info(calib.cameras[k], t_cam, fid))
+                    window.image(cid_img[k], t_ns, cdr.encode_image_mono8(t_cam, fid, img))
+            elif isinstance(item, ImuSample):
+                data = cdr.encode_imu(t_ns, IMU_FRAME_ID, item.gyro_rad_s, item.accel_m_s2)
+                window.small(cid_imu, t_ns, data)
+            else:
+                assert gt is not None
+                data = cdr.encode_pose_stamped(
+                    t_ns, WORLD_FRAME_ID, gt.positions_m[item], gt.q_wxyz[item]
+                )
+                window.small(cid_gt, t_ns, data)
+            bar.update(1)
+        window.emit()
+        bar.close()
+        writer.finish()
 
 
 class McapSequence(Ros2McapSequence):

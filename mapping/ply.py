@@ -9,13 +9,12 @@ face list; it exists for tests and round trips, not as a general PLY library.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from slam.atomic import atomic_output
 from slam.errors import InputError
 
 _PLY_TYPES = {
@@ -80,19 +79,10 @@ def _vertex_record(
 
 def _write_atomic(path: str | Path, header: str, chunks: list[bytes]) -> Path:
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        os.fchmod(fd, 0o644)  # mkstemp creates 0600; a mesh is an ordinary output file
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(header.encode("ascii"))
-            for chunk in chunks:
-                fh.write(chunk)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_output(path) as fh:
+        fh.write(header.encode("ascii"))
+        for chunk in chunks:
+            fh.write(chunk)
     return path
 
 

@@ -25,8 +25,6 @@ GTSAM holds the GIL for a whole solve: call :func:`optimize_pose_graph` from a w
 from __future__ import annotations
 
 import logging
-import os
-import tempfile
 import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -37,6 +35,7 @@ import gtsam
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
+from slam.atomic import write_atomic
 from slam.errors import InputError
 from slam.geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix
 
@@ -247,15 +246,7 @@ def write_g2o(graph: PoseGraph, path: str | Path) -> None:
 
 
 def _atomic_write_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_atomic(path, text)
 
 
 # --------------------------------------------------------------------------------------------

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,21 +16,13 @@ import numpy as np
 from tqdm import tqdm
 
 from datasets.synth.generator import SyntheticSequence
+from slam.atomic import write_atomic
 
 DEPTH_SCALE_M = 0.001  # one unit of the 16-bit depth PNGs, metres (TUM/7-Scenes convention)
 
 
 def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    write_atomic(path, data)
 
 
 def write_ply_mesh(path: str | os.PathLike[str], vertices: np.ndarray, faces: np.ndarray) -> None:

@@ -19,7 +19,6 @@ Every problem raises :class:`slam.errors.InputError` with ``file:line: what is w
 from __future__ import annotations
 
 import logging
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -584,18 +583,9 @@ def read_sequence_ground_truth(path: Path) -> PoseSource:
 
 
 def _write_atomic(path: Path, text: str) -> None:
-    import tempfile
+    from slam.atomic import write_atomic
 
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent or Path("."), prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    write_atomic(path, text)
 
 
 def ns_to_seconds_str(t_ns: int) -> str:

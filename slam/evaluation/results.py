@@ -6,7 +6,6 @@
 
 from __future__ import annotations
 
-import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -65,19 +64,12 @@ class EvalResult:
 def write_json(path: str | Path, results: list[EvalResult]) -> None:
     """Write one result (a JSON object) or several (a list), atomically."""
     import json
-    import tempfile
+
+    from slam.atomic import atomic_output
 
     payload: Any = results[0].to_dict() if len(results) == 1 else [r.to_dict() for r in results]
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(payload, f, indent=1)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_output(path, text=True) as f:
+        json.dump(payload, f, indent=1)
 
 
 @dataclass(frozen=True)

@@ -21,8 +21,6 @@ PyPI package ships an ORB vocabulary (see ../shared/design/FIELD_NOTES.md).
 from __future__ import annotations
 
 import io
-import os
-import tempfile
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -32,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from slam.atomic import write_atomic
 from slam.errors import InputError
 
 DESCRIPTOR_BYTES = 32  # ORB: 256 bits
@@ -304,16 +303,7 @@ class Vocabulary:
             parents=self.parents,
             idf=self.idf,
         )
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                f.write(buf.getvalue())
-            os.chmod(tmp, 0o644)  # mkstemp creates 0600; a vocabulary is a shareable data file
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        write_atomic(path, buf.getvalue())
 
     @staticmethod
     def load(path: str | Path) -> Vocabulary:
