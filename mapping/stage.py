@@ -12,8 +12,6 @@ periodic mesh snapshots (for rerun). At the end, keyframe poses are replaced by 
 from __future__ import annotations
 
 import logging
-import multiprocessing as mp
-import queue
 import threading
 import time
 from collections.abc import Callable
@@ -25,7 +23,8 @@ import numpy as np
 
 from slam.calibration import Calibration
 from slam.messages import EndOfStream, Keyframe, MapperReport, MeshSnapshot
-from slam.stage import Stage, StageError
+from slam.stage import Stage, StageError, latency_summary
+from slam.worker import READY, WorkerProcess, lower_priority
 
 log = logging.getLogger(__name__)
 
@@ -94,61 +93,62 @@ def _make_mapper(calib: Calibration, cfg: MapperStageConfig) -> Any:
 
 
 def _snapshot(mapper: Any, t_ns: int) -> MeshSnapshot | None:
+    """The current mesh, or None while it is empty (``t_ns`` 0: the final mesh)."""
     mesh = mapper.mesh()
     if mesh.num_vertices == 0:
         return None
     return MeshSnapshot(t_ns, mesh.vertices_m, mesh.faces, mesh.normals, mesh.colors_rgb)
 
 
+def _add(mapper: Any, item: _MapKeyframe) -> MapperReport:
+    r = mapper.add_keyframe(item.t_ns, item.image_left, item.image_right, item.world_from_cam0)
+    return MapperReport(r.t_ns, r.skipped, r.depth_ms, r.fusion_ms, r.blocks)
+
+
+def _finish(mapper: Any, request: _Finish) -> tuple[_MapperSummary, MeshSnapshot | None]:
+    """Re-integrate with the final poses, extract the mesh, write the PLY."""
+    t0 = time.perf_counter()
+    poses = request.world_from_cam0_by_t
+    moved = mapper.update_poses(poses) if poses else 0
+    final = _snapshot(mapper, 0)
+    summary = _MapperSummary(reintegrated=moved)
+    if final is not None:
+        summary.vertices, summary.faces = len(final.vertices_m), len(final.faces)
+        if request.mesh_path:
+            from mapping.ply import write_ply_mesh
+
+            write_ply_mesh(
+                request.mesh_path, final.vertices_m, final.faces, final.normals, final.colors_rgb
+            )
+            summary.mesh_path = request.mesh_path
+    summary.final_ms = (time.perf_counter() - t0) * 1e3
+    return summary, final
+
+
 def _worker(calib: Calibration, cfg: MapperStageConfig, inbox: Any, outbox: Any) -> None:
     """The worker process: fuse keyframes, report, snapshot meshes, finish with mesh.ply."""
-    import os
-
-    try:
-        os.nice(10)  # the lowest priority of the pipeline: it only has to keep up on average
-    except OSError:
-        pass
+    lower_priority(10)  # the lowest priority of the pipeline: it only has to keep up on average
     try:
         mapper = _make_mapper(calib, cfg)
     except Exception as exc:
         outbox.put(RuntimeError(f"mapper start failed: {type(exc).__name__}: {exc}"))
         return
-    outbox.put("ready")
+    outbox.put(READY)
     last_mesh = time.perf_counter()
     while True:
         msg = inbox.get()
         try:
             if isinstance(msg, _MapKeyframe):
-                r = mapper.add_keyframe(
-                    msg.t_ns, msg.image_left, msg.image_right, msg.world_from_cam0
-                )
-                outbox.put(MapperReport(r.t_ns, r.skipped, r.depth_ms, r.fusion_ms, r.blocks))
+                outbox.put(_add(mapper, msg))
                 if time.perf_counter() - last_mesh > cfg.mesh_every_s:
                     snap = _snapshot(mapper, msg.t_ns)
                     if snap is not None:
                         outbox.put(snap)
                     last_mesh = time.perf_counter()
             elif isinstance(msg, _Finish):
-                t0 = time.perf_counter()
-                moved = (
-                    mapper.update_poses(msg.world_from_cam0_by_t) if msg.world_from_cam0_by_t else 0
-                )
-                mesh = mapper.mesh()
-                summary = _MapperSummary(
-                    reintegrated=moved, vertices=mesh.num_vertices, faces=len(mesh.faces)
-                )
-                if msg.mesh_path and mesh.num_vertices:
-                    from mapping.ply import write_ply_mesh
-
-                    write_ply_mesh(
-                        msg.mesh_path, mesh.vertices_m, mesh.faces, mesh.normals, mesh.colors_rgb
-                    )
-                    summary.mesh_path = msg.mesh_path
-                summary.final_ms = (time.perf_counter() - t0) * 1e3
-                if mesh.num_vertices:
-                    outbox.put(
-                        MeshSnapshot(0, mesh.vertices_m, mesh.faces, mesh.normals, mesh.colors_rgb)
-                    )
+                summary, final = _finish(mapper, msg)
+                if final is not None:
+                    outbox.put(final)
                 outbox.put(summary)
             elif isinstance(msg, EndOfStream):
                 break
@@ -182,25 +182,9 @@ class MapperStage(Stage):
         self._done = threading.Event()
         self.use_process = threaded
         if self.use_process:
-            ctx = mp.get_context("spawn")
-            self._inbox: Any = ctx.Queue()
-            self._outbox: Any = ctx.Queue()
-            self._proc = ctx.Process(
-                target=_worker,
-                args=(calib, cfg, self._inbox, self._outbox),
-                daemon=True,
-                name="slam-mapper",
+            self._worker = WorkerProcess(
+                "mapper", _worker, (calib, cfg), self._on_worker_item, self._on_worker_died
             )
-            self._proc.start()
-            try:
-                ready = self._outbox.get(timeout=120)
-            except queue.Empty:
-                ready = None
-            if ready != "ready":
-                self._proc.terminate()
-                raise RuntimeError(f"the mapper worker process did not start: {ready}")
-            self._rx = threading.Thread(target=self._receive, name="mapper-rx", daemon=True)
-            self._rx.start()
         else:
             self._mapper = _make_mapper(calib, cfg)
 
@@ -224,22 +208,16 @@ class MapperStage(Stage):
             return True
         return False
 
-    def _receive(self) -> None:
-        while True:
-            try:
-                item = self._outbox.get(timeout=0.5)
-            except queue.Empty:
-                if not self._proc.is_alive():
-                    if not self._done.is_set() and self.error is None:
-                        self.error = StageError(
-                            self.name, RuntimeError("the mapper worker process died"), ""
-                        )
-                    self._done.set()
-                    return
-                continue
-            if self._handle_output(item):
-                self._done.set()
-                return
+    def _on_worker_item(self, item: Any) -> bool:
+        finished = self._handle_output(item)
+        if finished:
+            self._done.set()
+        return finished
+
+    def _on_worker_died(self) -> None:
+        if not self._done.is_set() and self.error is None:
+            self.error = StageError(self.name, RuntimeError("the mapper worker process died"), "")
+        self._done.set()
 
     # -- stage -----------------------------------------------------------------------------
     def process(self, msg: Any) -> None:
@@ -248,9 +226,8 @@ class MapperStage(Stage):
         pose = msg.world_from_body_vo @ self.body_from_cam0
         item = _MapKeyframe(msg.t_ns, msg.image_left, msg.image_right, pose)
         if not self.use_process:
-            r = self._mapper.add_keyframe(item.t_ns, item.image_left, item.image_right, pose)
             self.sent.append(msg.t_ns)
-            self._handle_output(MapperReport(r.t_ns, r.skipped, r.depth_ms, r.fusion_ms, r.blocks))
+            self._handle_output(_add(self._mapper, item))
             return
         with self._lock:
             backlog = len(self.sent) - len(self.reports)
@@ -259,65 +236,41 @@ class MapperStage(Stage):
             self.dropped_lag += 1
             return
         self.sent.append(msg.t_ns)
-        self._inbox.put(item)
+        self._worker.put(item)
 
     def finish(self, final_world_from_body: dict[int, np.ndarray], mesh_path: Path | None) -> None:
         """Re-integrate with the final keyframe poses (by t_ns) and write ``mesh_path``."""
+        fused = set(self.sent)
         poses = (
             {
                 int(t): np.asarray(p) @ self.body_from_cam0
                 for t, p in final_world_from_body.items()
-                if int(t) in set(self.sent)
+                if int(t) in fused
             }
             if self.cfg.final_reintegration
             else {}
         )
         request = _Finish(poses, None if mesh_path is None else str(mesh_path))
         if not self.use_process:
-            t0 = time.perf_counter()
-            moved = self._mapper.update_poses(request.world_from_cam0_by_t) if poses else 0
-            mesh = self._mapper.mesh()
-            s = _MapperSummary(
-                reintegrated=moved, vertices=mesh.num_vertices, faces=len(mesh.faces)
-            )
-            if mesh_path is not None and mesh.num_vertices:
-                from mapping.ply import write_ply_mesh
-
-                write_ply_mesh(
-                    mesh_path, mesh.vertices_m, mesh.faces, mesh.normals, mesh.colors_rgb
-                )
-                s.mesh_path = str(mesh_path)
-            s.final_ms = (time.perf_counter() - t0) * 1e3
-            self.summary = s
-            if mesh.num_vertices:
-                self.on_mesh(
-                    MeshSnapshot(0, mesh.vertices_m, mesh.faces, mesh.normals, mesh.colors_rgb)
-                )
+            self.summary, final = _finish(self._mapper, request)
+            if final is not None:
+                self.on_mesh(final)
             return
-        if not self._proc.is_alive():
+        if not self._worker.is_alive():
             return
-        self._inbox.put(request)
+        self._worker.put(request)
         self._done.wait(timeout=600)
-        self._inbox.put(EndOfStream())
-        self._proc.join(timeout=10)
-        if self._proc.is_alive():
-            self._proc.terminate()
+        self._worker.stop(receive_timeout_s=10)
 
     def abort(self) -> None:
         super().abort()
-        if self.use_process and self._proc.is_alive():
-            self._proc.terminate()
+        if self.use_process:
+            self._worker.terminate()
 
     def stats(self) -> dict[str, Any]:
         with self._lock:
             reports = list(self.reports)
         fused = [r for r in reports if not r.skipped]
-
-        def pct(vals: list[float]) -> dict[str, float]:
-            if not vals:
-                return {"count": 0}
-            a = np.asarray(vals)
-            return {"count": len(a), "p50_ms": float(np.median(a)), "max_ms": float(a.max())}
 
         return {
             "mode": "process" if self.use_process else "in-process",
@@ -327,8 +280,8 @@ class MapperStage(Stage):
             "keyframes_dropped_lag": self.dropped_lag,
             "max_backlog": self.max_backlog_seen,
             "max_lag_s": self.max_lag_s,
-            "depth": pct([r.depth_ms for r in fused]),
-            "fusion": pct([r.fusion_ms for r in fused]),
+            "depth": latency_summary([r.depth_ms for r in fused]),
+            "fusion": latency_summary([r.fusion_ms for r in fused]),
             "final_reintegrated": self.summary.reintegrated,
             "final_ms": self.summary.final_ms,
             "mesh_vertices": self.summary.vertices,

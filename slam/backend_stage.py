@@ -11,8 +11,6 @@ the estimator directly (deterministic).
 from __future__ import annotations
 
 import logging
-import multiprocessing as mp
-import queue
 import threading
 import time
 from collections.abc import Callable
@@ -23,20 +21,10 @@ import numpy as np
 from slam.backend.config import BackendConfig
 from slam.calibration import Calibration
 from slam.messages import BackendOutput, EndOfStream, Estimate, ImuBatch, ImuSample, Keyframe
-from slam.stage import Latest, Stage
+from slam.stage import Latest, Stage, StageError, latency_summary
+from slam.worker import READY, WorkerProcess, lower_priority
 
 log = logging.getLogger(__name__)
-
-
-def _lower_priority(increment: int) -> None:
-    """Yield the CPU to the front end (the latency-critical thread) on a loaded machine: the
-    back end only has to keep up on average, the front end must answer every frame."""
-    import os
-
-    try:
-        os.nice(increment)
-    except OSError:  # not permitted here: run at normal priority
-        pass
 
 
 class _Estimator:
@@ -81,9 +69,9 @@ class _Estimator:
 
 def _worker(calib: Calibration, cfg: BackendConfig, inbox: Any, outbox: Any) -> None:
     """The worker process: feed the estimator, send back outputs, then its final stats."""
-    _lower_priority(5)
+    lower_priority(5)
     estimator = _Estimator(calib, cfg)
-    outbox.put("ready")
+    outbox.put(READY)
     while True:
         msg = inbox.get()
         if isinstance(msg, EndOfStream):
@@ -122,28 +110,9 @@ class BackendStage(Stage):
         self._pending: list[ImuSample] = []
         self._lock = threading.Lock()
         if self.use_process:
-            ctx = mp.get_context("spawn")
-            self._inbox: Any = ctx.Queue()
-            self._outbox: Any = ctx.Queue()
-            self._proc = ctx.Process(
-                target=_worker,
-                args=(calib, cfg, self._inbox, self._outbox),
-                daemon=True,
-                name="slam-backend",
+            self._worker = WorkerProcess(
+                "backend", _worker, (calib, cfg), self._on_worker_item, self._on_worker_died
             )
-            self._proc.start()
-            # Wait for the worker to import GTSAM and build the estimator (seconds on a busy
-            # machine), so that real-time playback does not start against a back end that
-            # cannot answer yet.
-            try:
-                ready = self._outbox.get(timeout=120)
-            except queue.Empty:
-                ready = None
-            if ready != "ready":
-                self._proc.terminate()
-                raise RuntimeError("the back-end worker process did not start")
-            self._receiver = threading.Thread(target=self._receive, name="backend-rx", daemon=True)
-            self._receiver.start()
         else:
             self._estimator = _Estimator(calib, cfg)
 
@@ -158,27 +127,21 @@ class BackendStage(Stage):
             self.latest.set(out.estimate)
         self.on_output(out)
 
-    def _receive(self) -> None:
-        while True:
-            try:
-                item = self._outbox.get(timeout=0.5)
-            except queue.Empty:
-                if not self._proc.is_alive():
-                    if self.error is None and not self.final_stats:
-                        self._fail(RuntimeError("the back-end worker process died"))
-                    return
-                continue
-            if isinstance(item, BackendOutput):
-                self._publish(item)
-            elif isinstance(item, Exception):
-                self._fail(item)
-            elif isinstance(item, dict):
-                self.final_stats = item
-                return
+    def _on_worker_item(self, item: Any) -> bool:
+        if isinstance(item, BackendOutput):
+            self._publish(item)
+        elif isinstance(item, Exception):
+            self._fail(item)  # its final stats follow
+        elif isinstance(item, dict):
+            self.final_stats = item
+            return True
+        return False
+
+    def _on_worker_died(self) -> None:
+        if self.error is None and not self.final_stats:
+            self._fail(RuntimeError("the back-end worker process died"))
 
     def _fail(self, exc: BaseException) -> None:
-        from slam.stage import StageError
-
         self.error = StageError(self.name, exc, "")
         log.error("%s", self.error)
 
@@ -191,7 +154,7 @@ class BackendStage(Stage):
             np.array([s.accel_m_s2 for s in self._pending]),
         )
         self._pending = []
-        self._inbox.put(batch)
+        self._worker.put(batch)
 
     def process(self, msg: Any) -> None:
         if isinstance(msg, ImuSample):
@@ -204,25 +167,21 @@ class BackendStage(Stage):
         elif isinstance(msg, Keyframe):
             if self.use_process:
                 self._flush_imu()
-                self._inbox.put(msg)
+                self._worker.put(msg)
             else:
                 self._publish(self._estimator.add_keyframe(msg))
 
     def on_end(self) -> None:
         if self.use_process:
             self._flush_imu()
-            self._inbox.put(EndOfStream())
-            self._receiver.join(timeout=120)
-            self._proc.join(timeout=10)
-            if self._proc.is_alive():
-                self._proc.terminate()
+            self._worker.stop(receive_timeout_s=120)
         else:
             self.final_stats = self._estimator.stats()
 
     def abort(self) -> None:
         super().abort()
-        if self.use_process and self._proc.is_alive():
-            self._proc.terminate()
+        if self.use_process:
+            self._worker.terminate()
 
     def estimate(self) -> Estimate | None:
         value: Estimate | None = self.latest.get()
@@ -230,13 +189,4 @@ class BackendStage(Stage):
 
     def update_stats(self) -> dict[str, float]:
         with self._lock:
-            a = np.asarray(self.update_ms)
-        if not len(a):
-            return {"count": 0}
-        return {
-            "count": len(a),
-            "p50_ms": float(np.percentile(a, 50)),
-            "p90_ms": float(np.percentile(a, 90)),
-            "p99_ms": float(np.percentile(a, 99)),
-            "max_ms": float(a.max()),
-        }
+            return latency_summary(list(self.update_ms))

@@ -42,7 +42,7 @@ from slam.messages import (
     TrackingResult,
 )
 from slam.output import trajectory_from_poses, write_run_outputs
-from slam.stage import Latest, Stage, StageError
+from slam.stage import Latest, Stage, StageError, latency_summary
 from slam.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
@@ -81,6 +81,16 @@ class Recorder:
         with self._lock:
             self.poses = [(t, new_from_old @ p) for t, p in self.poses]
             self.keyframes = [(t, new_from_old @ p) for t, p in self.keyframes]
+
+    def keyframe_times_copy(self) -> dict[int, int]:
+        """Keyframe id -> t_ns of every keyframe recorded so far."""
+        with self._lock:
+            return dict(self.keyframe_times)
+
+    def segments_of_first(self, n: int) -> np.ndarray:
+        """Map segment of each of the first ``n`` recorded poses (poses are only appended)."""
+        with self._lock:
+            return np.array(self.pose_segments[:n])
 
     def event(self, t_ns: int, text: str) -> None:
         with self._lock:
@@ -135,19 +145,6 @@ class RunResult:
     error: StageError | None = None
     warnings: list[str] = field(default_factory=list)
     loop_closed: Trajectory | None = None
-
-
-def _percentiles(values: list[float]) -> dict[str, float]:
-    if not values:
-        return {"count": 0}
-    a = np.asarray(values)
-    return {
-        "count": len(a),
-        "p50_ms": float(np.percentile(a, 50)),
-        "p90_ms": float(np.percentile(a, 90)),
-        "p99_ms": float(np.percentile(a, 99)),
-        "max_ms": float(a.max()),
-    }
 
 
 def peak_rss_mb() -> float:
@@ -296,7 +293,7 @@ def run_slam(
             "speed": speed,
             "sequential": sequential,
             "latency": {
-                "frontend_frame": _percentiles(lat),
+                "frontend_frame": latency_summary(lat),
                 **{f"stage_{s.name}": s.latency_stats() for s in stages},
             },
             "peak_rss_mb": peak_rss_mb(),
@@ -323,8 +320,7 @@ def run_slam(
         """Back-end (optimised) keyframe poses where there are any, else the front end's."""
         if backend is None or not backend.keyframe_poses:
             return frontend_kfs
-        with recorder._lock:
-            times = dict(recorder.keyframe_times)
+        times = recorder.keyframe_times_copy()
         poses = sorted((times[k], p) for k, p in dict(backend.keyframe_poses).items() if k in times)
         return trajectory_from_poses(poses)
 
@@ -341,8 +337,7 @@ def run_slam(
         kf_seg = np.array([segment_of[k] for k in kids])
         if not kids:
             return {}
-        with recorder._lock:
-            segments = np.array(recorder.pose_segments[: len(traj)])
+        segments = recorder.segments_of_first(len(traj))
         poses = loop_closed_poses(
             traj.t_ns,
             segments,
@@ -423,8 +418,7 @@ def run_slam(
         if mapper is not None and not interrupted and mapper.error is None:
             final = {int(t): p for t, p in zip(kfs.t_ns, kfs.matrices(), strict=True)}
             if loop_stage is not None:
-                with recorder._lock:
-                    times = dict(recorder.keyframe_times)
+                times = recorder.keyframe_times_copy()
                 for kid, pose in loop_stage.corrected_keyframe_poses().items():
                     if kid in times:
                         final[times[kid]] = pose

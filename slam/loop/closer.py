@@ -140,16 +140,7 @@ class LoopStats:
     verify_ms: list[float] = field(default_factory=list)
 
     def summary(self) -> dict[str, object]:
-        def pct(values: list[float]) -> dict[str, float]:
-            if not values:
-                return {"count": 0}
-            a = np.asarray(values)
-            return {
-                "count": len(a),
-                "p50_ms": float(np.percentile(a, 50)),
-                "p99_ms": float(np.percentile(a, 99)),
-                "max_ms": float(a.max()),
-            }
+        from slam.stage import latency_summary as pct
 
         return {
             "keyframes": self.keyframes,

@@ -72,6 +72,14 @@ class Relocaliser:
         self.successes = 0
         self.elapsed_ms: list[float] = []
 
+    def stats(self) -> dict[str, object]:
+        """Calls, successes and the median time per call (ms) so far."""
+        return {
+            "calls": self.calls,
+            "successes": self.successes,
+            "p50_ms": float(np.median(self.elapsed_ms)) if self.elapsed_ms else None,
+        }
+
     def relocalise(
         self,
         image_left: np.ndarray,

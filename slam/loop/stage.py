@@ -40,12 +40,9 @@ REFRESH_LAST_KEYFRAMES = 30  # odometry poses re-read per new keyframe (the back
 def _warm_up() -> bool:
     """Import GTSAM in the worker before the first loop needs it, at a lower priority than
     the front end (pose-graph optimisation only has to finish soon, not within a frame)."""
-    import os
+    from slam.worker import lower_priority
 
-    try:
-        os.nice(5)
-    except OSError:
-        pass
+    lower_priority(5)
     import slam.posegraph  # noqa: F401
 
     return True
@@ -193,11 +190,5 @@ class LoopClosureStage(Stage):
                 for e in self.events
                 if e.status == "rejected"
             ][:50]
-            out["relocalisation"] = {
-                "calls": self.relocaliser.calls,
-                "successes": self.relocaliser.successes,
-                "p50_ms": float(np.median(self.relocaliser.elapsed_ms))
-                if self.relocaliser.elapsed_ms
-                else None,
-            }
+            out["relocalisation"] = self.relocaliser.stats()
         return out

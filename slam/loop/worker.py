@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import multiprocessing as mp
-import queue
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -30,6 +28,7 @@ from slam.loop.store import KeyframeDescription, KeyframeStore
 from slam.loop.vocabulary import load_default_vocabulary
 from slam.messages import EndOfStream, Keyframe, LoopCorrection
 from slam.stage import Latest, Stage, StageError
+from slam.worker import READY, WorkerProcess, lower_priority
 
 log = logging.getLogger(__name__)
 
@@ -58,16 +57,11 @@ class _LoopFinal:
 
 
 def _worker(calib: Calibration, cfg: LoopClosureConfig, inbox: Any, outbox: Any) -> None:
-    import os
-
     from slam.loop.closer import LoopCloser
 
-    try:
-        os.nice(5)  # background work: the front end's process comes first
-    except OSError:
-        pass
+    lower_priority(5)  # background work: the front end's process comes first
     closer = LoopCloser(calib, cfg, None, inline_pgo=True)
-    outbox.put("ready")
+    outbox.put(READY)
     while True:
         msg = inbox.get()
         if isinstance(msg, EndOfStream):
@@ -139,25 +133,9 @@ class LoopClosureWorkerStage(Stage):
         self._sent: list[int] = []
         self._final: _LoopFinal | None = None
         self._events: list[tuple[str, str]] = []
-        ctx = mp.get_context("spawn")
-        self._inbox: Any = ctx.Queue()
-        self._outbox: Any = ctx.Queue()
-        self._proc = ctx.Process(
-            target=_worker,
-            args=(calib, cfg, self._inbox, self._outbox),
-            daemon=True,
-            name="slam-loop",
+        self._worker = WorkerProcess(
+            "loop", _worker, (calib, cfg), self._on_worker_item, self._on_worker_died
         )
-        self._proc.start()
-        try:
-            ready = self._outbox.get(timeout=120)
-        except queue.Empty:
-            ready = None
-        if ready != "ready":
-            self._proc.terminate()
-            raise RuntimeError("the loop-closure worker process did not start")
-        self._rx = threading.Thread(target=self._receive, name="loop-rx", daemon=True)
-        self._rx.start()
 
     # -- stage ---------------------------------------------------------------------------
     def process(self, msg: Any) -> None:
@@ -174,50 +152,38 @@ class LoopClosureWorkerStage(Stage):
             self.t_ns_of[msg.keyframe_id] = msg.t_ns
             self.segment_of[msg.keyframe_id] = msg.segment_id
         self._sent.append(msg.keyframe_id)
-        self._inbox.put(_LoopInput(dataclasses.replace(msg, image_right=None), odom, refreshed))
+        self._worker.put(_LoopInput(dataclasses.replace(msg, image_right=None), odom, refreshed))
 
-    def _receive(self) -> None:
-        while True:
-            try:
-                item = self._outbox.get(timeout=0.5)
-            except queue.Empty:
-                if not self._proc.is_alive():
-                    if self._final is None and self.error is None:
-                        self.error = StageError(
-                            self.name, RuntimeError("the loop-closure worker died"), ""
-                        )
-                    return
-                continue
-            if isinstance(item, _LoopOutput):
-                d = item.description
-                with self.store.lock:  # the relocaliser reads under the same lock
-                    self.store.add_description(d, item.world_from_body_odom)
-                    self.store.database.add(d.kf_id, d.t_ns, d.bow)
-                if item.status:
-                    self._events.append((item.status, item.reason))
-                if item.correction is not None:
-                    self.store.set_corrected(item.correction.corrected_keyframe_poses)
-                    self.latest.set(item.correction)
-                    self.on_correction(item.correction)
-            elif isinstance(item, _LoopFinal):
-                self._final = item
-                return
-            elif isinstance(item, Exception):
-                self.error = StageError(self.name, item, "")
-                log.error("%s", self.error)
-                return
+    def _on_worker_item(self, item: Any) -> bool:
+        if isinstance(item, _LoopOutput):
+            d = item.description
+            with self.store.lock:  # the relocaliser reads under the same lock
+                self.store.add_description(d, item.world_from_body_odom)
+                self.store.database.add(d.kf_id, d.t_ns, d.bow)
+            if item.status:
+                self._events.append((item.status, item.reason))
+            if item.correction is not None:
+                self.store.set_corrected(item.correction.corrected_keyframe_poses)
+                self.latest.set(item.correction)
+                self.on_correction(item.correction)
+            return False
+        if isinstance(item, _LoopFinal):
+            self._final = item
+        elif isinstance(item, Exception):
+            self.error = StageError(self.name, item, "")
+            log.error("%s", self.error)
+        return True
+
+    def _on_worker_died(self) -> None:
+        if self._final is None and self.error is None:
+            self.error = StageError(self.name, RuntimeError("the loop-closure worker died"), "")
 
     def on_end(self) -> None:
-        self._inbox.put(EndOfStream())
-        self._rx.join(timeout=600)
-        self._proc.join(timeout=10)
-        if self._proc.is_alive():
-            self._proc.terminate()
+        self._worker.stop(receive_timeout_s=600)
 
     def abort(self) -> None:
         super().abort()
-        if self._proc.is_alive():
-            self._proc.terminate()
+        self._worker.terminate()
 
     # -- outputs (complete once the stage has ended) ----------------------------------------
     def keyframe_corrections(self) -> dict[int, np.ndarray]:
@@ -233,11 +199,5 @@ class LoopClosureWorkerStage(Stage):
 
     def stats(self) -> dict[str, Any]:
         out: dict[str, Any] = {} if self._final is None else dict(self._final.stats)
-        out["relocalisation"] = {
-            "calls": self.relocaliser.calls,
-            "successes": self.relocaliser.successes,
-            "p50_ms": float(np.median(self.relocaliser.elapsed_ms))
-            if self.relocaliser.elapsed_ms
-            else None,
-        }
+        out["relocalisation"] = self.relocaliser.stats()
         return out
