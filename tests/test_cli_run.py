@@ -71,6 +71,12 @@ def test_run_bad_inputs_are_one_line_errors(tmp_path, capsys):
     assert slam(["run", str(tmp_path / "missing.mcap"), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "error" in err[0]
+    not_a_dir = tmp_path / "file.txt"
+    not_a_dir.write_text("keep me\n")
+    assert slam(["run", str(tmp_path / "missing.mcap"), "--out", str(not_a_dir)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not a folder" in err[0]
+    assert not_a_dir.read_text() == "keep me\n"
     cfg = tmp_path / "bad.yaml"
     cfg.write_text("frontend:\n  max_featurez: 10\n")
     seq = tmp_path / "s.mcap"

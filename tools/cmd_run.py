@@ -94,12 +94,15 @@ def handle(args: argparse.Namespace) -> int:
     from slam.pipeline import run_slam
     from tools.seq_args import open_from_args
 
+    out: Path = args.out
+    if out.exists() and not out.is_dir():
+        raise SlamError(f"--out {out} exists and is not a folder; give a folder for the outputs")
+    try:  # fail before the run, not after it, when the folder cannot be made
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SlamError(f"--out {out}: cannot create the output folder ({exc.strerror})") from None
     seq = open_from_args(args)
     default_preset = "euroc-stereo-imu" if seq.num_imu else "stereo-vo"
-    from slam.config import PRESETS
-
-    if default_preset not in PRESETS:
-        default_preset = "stereo-vo"
     cfg = load_config(args.config, default_preset)
     if args.speed is not None:
         cfg.player.speed = parse_speed(args.speed)
