@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from datasets.info import describe
-from tools.seq_args import SEQUENCE_HELP, add_sequence_args
+from tools.seq_args import SEQUENCE_HELP, add_sequence_args, source_options
 
 DESCRIPTION = (
     """\
@@ -29,16 +29,7 @@ examples:
 
 
 def run(args: argparse.Namespace) -> int:
-    lines, usable = describe(
-        args.seq,
-        left_topic=args.left_topic,
-        right_topic=args.right_topic,
-        imu_topic=args.imu_topic,
-        gt_topic=args.gt_topic,
-        camchain=args.camchain,
-        imu_yaml=args.imu_yaml,
-        gt_path=args.gt,
-    )
+    lines, usable = describe(args.seq, **source_options(args))
     print("\n".join(lines))
     return 0 if usable else 2
 

@@ -4,6 +4,7 @@ one (``slam info``, ``slam convert``, ``slam run``, ``slam eval``)."""
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
 from datasets.open import open_sequence
 from datasets.sequence import Sequence
@@ -35,15 +36,19 @@ def add_sequence_args(parser: argparse.ArgumentParser, *, positional: str = "seq
     )
 
 
+def source_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The :func:`add_sequence_args` options as keyword arguments of ``open_sequence``."""
+    return {
+        "left_topic": args.left_topic,
+        "right_topic": args.right_topic,
+        "imu_topic": args.imu_topic,
+        "gt_topic": args.gt_topic,
+        "camchain": args.camchain,
+        "imu_yaml": args.imu_yaml,
+        "gt_path": args.gt,
+    }
+
+
 def open_from_args(args: argparse.Namespace, *, positional: str = "seq") -> Sequence:
     """Open the sequence described by :func:`add_sequence_args` options."""
-    return open_sequence(
-        getattr(args, positional),
-        left_topic=args.left_topic,
-        right_topic=args.right_topic,
-        imu_topic=args.imu_topic,
-        gt_topic=args.gt_topic,
-        camchain=args.camchain,
-        imu_yaml=args.imu_yaml,
-        gt_path=args.gt,
-    )
+    return open_sequence(getattr(args, positional), **source_options(args))
