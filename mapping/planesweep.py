@@ -153,57 +153,184 @@ def plane_homography(
     return K_src @ (rot + t @ n / depth_m) @ np.linalg.inv(K_ref)
 
 
-def _box(img: np.ndarray, win: int) -> np.ndarray:
+_STRIP_ROWS = 48
+"""Reference rows per work unit: the sweep runs strip by strip (all planes for one strip, then
+the next), so its dozen temporaries stay in the L2 cache; threads take whole strips. The strip
+layout does not depend on the thread count, so neither do the results."""
+
+
+def _box_kernel(win: int) -> np.ndarray:
+    return np.full(win, 1.0 / win, np.float32)
+
+
+def _box(img: np.ndarray, win: int, dst: np.ndarray | None = None) -> np.ndarray:
     """Window mean (separable box filter: cheaper than cv2.boxFilter here)."""
-    k = np.full(win, 1.0 / win, np.float32)
-    return cv2.sepFilter2D(img, cv2.CV_32F, k, k, borderType=cv2.BORDER_REFLECT)
+    k = _box_kernel(win)
+    return cv2.sepFilter2D(img, cv2.CV_32F, k, k, dst=dst, borderType=cv2.BORDER_REFLECT)
 
 
 class _RefStats:
     """Window statistics of the reference image, computed once per sweep."""
 
     def __init__(self, ref: np.ndarray, win: int) -> None:
-        self.img = ref
-        self.mean = _box(ref, win)
-        var = _box(ref * ref, win) - self.mean * self.mean
+        self.img = np.ascontiguousarray(ref, np.float32)
+        self.mean = _box(self.img, win)
+        var = _box(self.img * self.img, win) - self.mean * self.mean
         self.std = np.sqrt(np.maximum(var, 0.0))
-        self.inv_std = 1.0 / np.maximum(self.std, 1e-3)
+        self.inv_std = (1.0 / np.maximum(self.std, 1e-3)).astype(np.float32)
+        self.mean_inv_std = (self.mean * self.inv_std).astype(np.float32)
 
 
-def _score_zncc(ref: _RefStats, warped: np.ndarray, win: int) -> np.ndarray:
-    """Windowed ZNCC in [-1, 1]; pixels whose window leaves the source image get -1."""
-    mu_s = _box(warped, win)
-    mu_ss = _box(cv2.multiply(warped, warped), win)
-    mu_rs = _box(cv2.multiply(ref.img, warped), win)
-    cov = cv2.subtract(mu_rs, cv2.multiply(ref.mean, mu_s))
-    var_s = cv2.subtract(mu_ss, cv2.multiply(mu_s, mu_s))
-    inv_std_s = cv2.pow(cv2.max(var_s, 1e-2), -0.5)
-    score = cv2.multiply(cv2.multiply(cov, inv_std_s), ref.inv_std)
-    cv2.patchNaNs(score, -1.0)  # NaN = outside the source image
-    return score
+class _StripSweep:
+    """Sweep of all planes over one strip of reference rows with preallocated buffers.
 
+    Buffers cover the strip plus ``window // 2`` halo rows on each side (the box filters of the
+    core rows see exactly the rows they would see on the full image); scores are kept for the
+    core rows only. Every OpenCV call writes into a buffer (``dst=``): no per-plane allocation.
+    """
 
-def _score_sad(ref: _RefStats, warped: np.ndarray, win: int) -> np.ndarray:
-    """Negated windowed mean absolute difference (higher is better); outside = -255."""
-    score = -_box(cv2.absdiff(ref.img, warped), win)
-    cv2.patchNaNs(score, -255.0)
-    return score
+    def __init__(
+        self,
+        ref: _RefStats,
+        srcs: list[np.ndarray],
+        homs: np.ndarray,
+        cfg: SweepConfig,
+        k: int,
+        rows: tuple[int, int],
+    ) -> None:
+        h, w = ref.img.shape
+        r = cfg.window // 2
+        self.y0, self.y1 = rows
+        self.ya, self.yb = max(0, self.y0 - r), min(h, self.y1 + r)
+        self.c0 = self.y0 - self.ya
+        self.c1 = self.c0 + (self.y1 - self.y0)
+        self.w = w
+        self.ref, self.srcs, self.cfg, self.k = ref, srcs, cfg, k
+        self.kernel = _box_kernel(cfg.window)
+        # Strip homographies: destination row y of the buffer is reference row y + ya.
+        self.homs = homs.copy()
+        self.homs[..., :, 2] += self.ya * homs[..., :, 1]
+        n, c = self.yb - self.ya, self.y1 - self.y0
+        buf = lambda rows_: np.empty((rows_, w), np.float32)  # noqa: E731
+        self.warped, self.mu_s, self.mu_ss, self.mu_rs, self.tmp = (buf(n) for _ in range(5))
+        self.view_scores = [buf(c) for _ in srcs]
+        self.tmp_c = buf(c)
+        self.ref_img = ref.img[self.ya : self.yb]
+        self.ref_inv_std = ref.inv_std[self.y0 : self.y1]
+        self.ref_mean_inv_std = ref.mean_inv_std[self.y0 : self.y1]
 
+    def _box(self, src: np.ndarray, dst: np.ndarray) -> None:
+        cv2.sepFilter2D(
+            src, cv2.CV_32F, self.kernel, self.kernel, dst=dst, borderType=cv2.BORDER_REFLECT
+        )
 
-def _aggregate(scores: list[np.ndarray], k: int) -> np.ndarray:
-    """Mean of the best k view scores per pixel (robust to occlusion in the other views)."""
-    if len(scores) == 1:
-        return scores[0]
-    if k == 1:
-        out = scores[0]
-        for s in scores[1:]:
-            out = cv2.max(out, s)
-        return out
-    if k >= len(scores):
-        return np.asarray(np.mean(scores, axis=0, dtype=np.float32))
-    stack = np.stack(scores)
-    part = np.partition(stack, len(scores) - k, axis=0)[len(scores) - k :]
-    return np.asarray(part.mean(axis=0, dtype=np.float32))
+    def _warp(self, view: int, plane: int) -> None:
+        cv2.warpPerspective(
+            self.srcs[view],
+            self.homs[view, plane],
+            (self.w, self.yb - self.ya),
+            dst=self.warped,
+            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=np.nan,
+        )
+
+    def _score_zncc(self, out: np.ndarray) -> None:
+        """Windowed ZNCC in [-1, 1] of the warped source; windows leaving the source get -1.
+
+        ``zncc = (box(I_r I_s) - mu_r mu_s) / (sigma_r sigma_s)``, evaluated as
+        ``(box(I_r I_s) / sigma_r - (mu_r / sigma_r) mu_s) / sigma_s`` on the core rows.
+        """
+        warped, tmp, c0, c1 = self.warped, self.tmp, self.c0, self.c1
+        self._box(warped, self.mu_s)
+        cv2.multiply(warped, warped, dst=tmp)
+        self._box(tmp, self.mu_ss)
+        cv2.multiply(self.ref_img, warped, dst=tmp)
+        self._box(tmp, self.mu_rs)
+        mu_s, mu_ss, mu_rs, tmp_c = (
+            self.mu_s[c0:c1],
+            self.mu_ss[c0:c1],
+            self.mu_rs[c0:c1],
+            self.tmp_c,
+        )
+        cv2.multiply(mu_rs, self.ref_inv_std, dst=mu_rs)
+        cv2.multiply(self.ref_mean_inv_std, mu_s, dst=tmp_c)
+        cv2.subtract(mu_rs, tmp_c, dst=mu_rs)  # cov / sigma_r
+        cv2.multiply(mu_s, mu_s, dst=tmp_c)
+        cv2.subtract(mu_ss, tmp_c, dst=mu_ss)  # var_s
+        cv2.max(mu_ss, 1e-2, dst=mu_ss)
+        cv2.pow(mu_ss, -0.5, dst=mu_ss)
+        cv2.multiply(mu_rs, mu_ss, dst=out)
+        cv2.patchNaNs(out, -1.0)  # NaN = outside the source image
+
+    def _score_sad(self, out: np.ndarray) -> None:
+        """Negated windowed mean absolute difference (higher is better); outside = -255."""
+        cv2.absdiff(self.ref_img, self.warped, dst=self.tmp)
+        self._box(self.tmp, self.mu_rs)
+        np.negative(self.mu_rs[self.c0 : self.c1], out=out)
+        cv2.patchNaNs(out, -255.0)
+
+    def _aggregate(self, out: np.ndarray) -> None:
+        """Mean of the best k view scores per pixel (robust to occlusion in the other views)."""
+        scores, k, n = self.view_scores, self.k, len(self.view_scores)
+        if k == 1:
+            np.copyto(out, scores[0])
+            for s in scores[1:]:
+                cv2.max(out, s, dst=out)
+        elif k >= n or k == n - 1:
+            np.copyto(out, scores[0])
+            for s in scores[1:]:
+                cv2.add(out, s, dst=out)
+            if k < n:  # drop the worst view
+                np.copyto(self.tmp_c, scores[0])
+                for s in scores[1:]:
+                    cv2.min(self.tmp_c, s, dst=self.tmp_c)
+                cv2.subtract(out, self.tmp_c, dst=out)
+            np.multiply(out, np.float32(1.0 / min(k, n)), out=out)
+        else:
+            part = np.partition(np.stack(scores), n - k, axis=0)[n - k :]
+            np.mean(part, axis=0, dtype=np.float32, out=out)
+
+    def run(self, planes: int) -> tuple[np.ndarray, ...]:
+        """Best score, its plane index, the scores of its two neighbour planes (-inf beyond the
+        ends) and the best score of a non-adjacent plane, for the core rows."""
+        c, w = self.y1 - self.y0, self.w
+        volume = np.empty((planes, c, w), np.float32)  # aggregated score per plane
+        best = np.empty((c, w), np.float32)
+        best_i = np.zeros((c, w), np.float32)
+        score = self._score_zncc if self.cfg.cost == "zncc" else self._score_sad
+        for i in range(planes):
+            for v in range(len(self.srcs)):
+                self._warp(v, i)
+                score(self.view_scores[v])
+            s = volume[i]
+            self._aggregate(s)
+            if i == 0:
+                np.copyto(best, s)
+                continue
+            # Planes come in increasing order, so best_i = max(best_i, i where s > best).
+            cv2.subtract(s, best, dst=self.tmp_c)
+            cv2.threshold(self.tmp_c, 0.0, float(i), cv2.THRESH_BINARY, dst=self.tmp_c)
+            cv2.max(best_i, self.tmp_c, dst=best_i)
+            cv2.max(best, s, dst=best)
+
+        idx = best_i.astype(np.intp).ravel()
+        lin = idx * (c * w) + np.arange(c * w)
+        flat = volume.reshape(-1)
+        has_prev, has_next = idx > 0, idx < planes - 1
+        prev = np.where(has_prev, flat[np.where(has_prev, lin - c * w, lin)], -np.inf)
+        nxt = np.where(has_next, flat[np.where(has_next, lin + c * w, lin)], -np.inf)
+        flat[lin] = -np.inf
+        flat[lin[has_prev] - c * w] = -np.inf
+        flat[lin[has_next] + c * w] = -np.inf
+        second = volume.max(axis=0) if planes > 0 else np.full((c, w), -np.inf, np.float32)
+        return (
+            best,
+            best_i.astype(np.int32),
+            prev.reshape(c, w).astype(np.float32),
+            nxt.reshape(c, w).astype(np.float32),
+            second,
+        )
 
 
 def plane_sweep(
@@ -216,64 +343,36 @@ def plane_sweep(
     cfg = config or SweepConfig()
     if not sources:
         raise ValueError("plane_sweep needs at least one source view")
-    win = cfg.window
-    ref = _RefStats(to_gray_f32(ref_image), win)
+    ref = _RefStats(to_gray_f32(ref_image), cfg.window)
     h, w = ref.img.shape
-    srcs = [to_gray_f32(s.image) for s in sources]
+    srcs = [np.ascontiguousarray(to_gray_f32(s.image)) for s in sources]
     k = cfg.best_k or (len(sources) + 1) // 2
     depths = inverse_depth_planes(cfg)
-    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-
     n_planes = len(depths)
-    volume = np.empty((n_planes, h, w), np.float32)  # aggregated score per plane
+    homs = np.array(
+        [[plane_homography(K_ref, v.K, v.src_from_ref, float(d)) for d in depths] for v in sources]
+    )
 
-    def sweep_chunk(plane_ids: range) -> tuple[np.ndarray, np.ndarray]:
-        best = np.full((h, w), -np.inf, np.float32)
-        best_i = np.zeros((h, w), np.int32)
-        for i in plane_ids:
-            view_scores = []
-            for src, view in zip(srcs, sources):
-                hom = plane_homography(K_ref, view.K, view.src_from_ref, float(depths[i]))
-                warped = cv2.warpPerspective(
-                    src,
-                    hom,
-                    (w, h),
-                    flags=flags,
-                    borderMode=cv2.BORDER_CONSTANT,
-                    borderValue=np.nan,
-                )
-                if cfg.cost == "zncc":
-                    view_scores.append(_score_zncc(ref, warped, win))
-                else:
-                    view_scores.append(_score_sad(ref, warped, win))
-            s = _aggregate(view_scores, k)
-            volume[i] = s
-            np.copyto(best_i, np.int32(i), where=s > best)
-            cv2.max(best, s, dst=best)
-        return best, best_i
+    best = np.empty((h, w), np.float32)
+    best_i = np.empty((h, w), np.int32)
+    best_prev = np.empty((h, w), np.float32)
+    best_next = np.empty((h, w), np.float32)
+    second = np.empty((h, w), np.float32)
 
-    n_threads = max(1, min(cfg.threads, n_planes))
-    bounds = np.linspace(0, n_planes, n_threads + 1).astype(int)
-    chunks = [range(bounds[j], bounds[j + 1]) for j in range(n_threads)]
+    def sweep_strip(y0: int) -> None:
+        y1 = min(h, y0 + _STRIP_ROWS)
+        out = _StripSweep(ref, srcs, homs, cfg, k, (y0, y1)).run(n_planes)
+        for dst, part in zip((best, best_i, best_prev, best_next, second), out):
+            dst[y0:y1] = part
+
+    starts = range(0, h, _STRIP_ROWS)
+    n_threads = max(1, min(cfg.threads, len(starts)))
     if n_threads == 1:
-        results = [sweep_chunk(chunks[0])]
-    else:  # OpenCV and numpy release the GIL: plane chunks run truly in parallel
+        for y0 in starts:
+            sweep_strip(y0)
+    else:  # OpenCV and numpy release the GIL: strips run truly in parallel
         with ThreadPoolExecutor(n_threads) as pool:
-            results = list(pool.map(sweep_chunk, chunks))
-    best, best_i = results[0]
-    for b_j, i_j in results[1:]:  # later chunks win only when strictly better
-        np.copyto(best_i, i_j, where=b_j > best)
-        np.maximum(best, b_j, out=best)
-
-    # Scores at the neighbouring planes (-inf beyond the ends), then the best non-adjacent one.
-    idx = best_i[None]
-    best_prev = np.take_along_axis(volume, np.maximum(idx - 1, 0), 0)[0]
-    best_next = np.take_along_axis(volume, np.minimum(idx + 1, n_planes - 1), 0)[0]
-    best_prev[best_i == 0] = -np.inf
-    best_next[best_i == n_planes - 1] = -np.inf
-    for d in (-1, 0, 1):
-        np.put_along_axis(volume, np.clip(idx + d, 0, n_planes - 1), -np.inf, 0)
-    second = volume.max(axis=0)
+            list(pool.map(sweep_strip, starts))
 
     # Parabola through (i-1, i, i+1); a missing neighbour (edge plane) means no refinement.
     denom = best_prev - 2.0 * best + best_next
