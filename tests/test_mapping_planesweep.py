@@ -177,32 +177,74 @@ def _pnp_src_from_ref(ref_rgb, ref_depth, src_rgb, k):
     return out
 
 
+SEVEN_SCENES_COLOR_K = np.array([[525.0, 0.0, 320.0], [0.0, 525.0, 240.0], [0.0, 0.0, 1.0]])
+"""7-Scenes colour camera model: the Kinect v1 colour focal length (525 px) at the depth camera's
+centre and principal point. The dataset documents neither a colour intrinsic nor a depth-to-colour
+extrinsic: its PROVENANCE says colour and depth are not registered and the poses (camera-to-world,
+from KinectFusion tracking) are those of the depth camera."""
+
+
+def _seven_scenes_sweep(folder, ref_i, src_from_ref_of):
+    ref = folder.frame(ref_i)
+    sensor = _reproject_depth(ref.depth_m, folder.K, SEVEN_SCENES_COLOR_K)
+    sources = []
+    for j in (ref_i - 10, ref_i + 10):
+        src = folder.color_rgb(j)
+        sources.append(SourceView(src, SEVEN_SCENES_COLOR_K, src_from_ref_of(ref, sensor, j, src)))
+    res = plane_sweep(
+        ref.color_rgb,
+        SEVEN_SCENES_COLOR_K,
+        sources,
+        SweepConfig(depth_min_m=0.5, depth_max_m=4.0, threads=2),
+    )
+    both = res.valid & (sensor > 0)
+    return np.median(np.abs(res.depth_m[both] - sensor[both]) / sensor[both]), both.mean()
+
+
 def test_seven_scenes_sweep_agrees_with_sensor_depth(shared_data):
-    """7-Scenes colour is not registered to depth: its camera is modelled as f = 525 px at the
-    depth camera's centre, and the colour frames' relative poses are refined by PnP on ORB
-    matches lifted with the sensor depth (the pose files disagree with the colour frames by
-    0.3-0.8 deg). The dense depth itself comes only from photo-consistency."""
+    """Issue check (median relative error <= 5 %) with the best honest colour poses we have.
+
+    The colour frames' relative poses come from PnP (RANSAC, 2 px) on ORB matches between the
+    two colour images, the reference features lifted with the reference's sensor depth. That
+    is partly circular (the sparse features' depth is sensor depth); the dense depth itself comes
+    only from photo-consistency of the colour images. Why not the dataset poses directly: they
+    are depth-camera (KinectFusion) poses and the sensors are unregistered; projecting the sensor
+    depth with the dataset relative pose lands 1-3 px (median) away from where the PnP pose puts
+    it, against 15-28 px of parallax over 10 frames, i.e. 7-13 % of depth (measured on frames
+    100, 200, 300; longer baselines do not help, the pose error grows too). That variant is
+    checked with its own, looser bound in the next test.
+    """
     from datasets.rgbd_folder import RgbdFolder
 
     folder = RgbdFolder(require(shared_data / "7scenes_rgbd_400"))
-    k_color = np.array([[525.0, 0.0, 320.0], [0.0, 525.0, 240.0], [0.0, 0.0, 1.0]])
-    medians = []
-    for ref_i in (100, 300):
-        ref = folder.frame(ref_i)
-        sensor = _reproject_depth(ref.depth_m, folder.K, k_color)
-        sources = []
-        for j in (ref_i - 10, ref_i + 10):
-            src = folder.color_rgb(j)
-            sources.append(
-                SourceView(src, k_color, _pnp_src_from_ref(ref.color_rgb, sensor, src, k_color))
-            )
-        res = plane_sweep(
-            ref.color_rgb,
-            k_color,
-            sources,
-            SweepConfig(depth_min_m=0.5, depth_max_m=4.0, threads=2),
+    results = [
+        _seven_scenes_sweep(
+            folder,
+            ref_i,
+            lambda ref, sensor, j, src: _pnp_src_from_ref(
+                ref.color_rgb, sensor, src, SEVEN_SCENES_COLOR_K
+            ),
         )
-        both = res.valid & (sensor > 0)
-        assert both.mean() > 0.25
-        medians.append(np.median(np.abs(res.depth_m[both] - sensor[both]) / sensor[both]))
-    assert np.median(medians) <= 0.05, medians
+        for ref_i in (100, 300)
+    ]
+    assert all(cov > 0.25 for _, cov in results), results
+    assert np.median([m for m, _ in results]) <= 0.05, results
+
+
+def test_seven_scenes_sweep_with_dataset_poses(shared_data):
+    """No sensor depth in the poses at all: the dataset's (depth-camera) relative poses used for
+    the colour camera as they are. The sensors are unregistered and these poses disagree with
+    the colour images by 1-3 px, so the bound is looser than the issue's 5 % (see above)."""
+    from datasets.rgbd_folder import RgbdFolder
+
+    folder = RgbdFolder(require(shared_data / "7scenes_rgbd_400"))
+    results = [
+        _seven_scenes_sweep(
+            folder,
+            ref_i,
+            lambda ref, sensor, j, src, r=ref_i: invert_transform(folder.pose(j)) @ folder.pose(r),
+        )
+        for ref_i in (100, 300)
+    ]
+    assert all(cov > 0.15 for _, cov in results), results
+    assert np.median([m for m, _ in results]) <= 0.15, results
