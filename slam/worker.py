@@ -95,3 +95,7 @@ class WorkerProcess:
     def terminate(self) -> None:
         if self.proc.is_alive():
             self.proc.terminate()
+        # Nobody will read what is still buffered for a dead worker: without this, the inbox's
+        # feeder thread blocks the interpreter's exit on a full pipe (seen after a worker
+        # failure: `slam run` printed its outputs, then hung).
+        self.inbox.cancel_join_thread()

@@ -560,6 +560,33 @@ class LoopCloser:
     def loop_edges(self) -> list[LoopRecord]:
         return list(self.loops)
 
+    def graph_dump(self) -> dict[str, object]:
+        """The pose graph as plain lists (JSON): per keyframe id, t_ns, segment, odometry and
+        corrected poses (x y z qw qx qy qz); per loop, its edge (match_body_from_query_body)."""
+        from slam.geometry import matrix_to_quat_wxyz
+
+        def vec(pose: np.ndarray) -> list[float]:
+            q = matrix_to_quat_wxyz(pose[:3, :3])
+            return [float(v) for v in (*pose[:3, 3], *q)]
+
+        return {
+            "kf_ids": list(self.kf_ids),
+            "t_ns": [self.t_ns_of[k] for k in self.kf_ids],
+            "segment": [self.segment_of[k] for k in self.kf_ids],
+            "odometry": [vec(self.odom[k]) for k in self.kf_ids],
+            "corrected": [vec(self.corrected_pose(k)) for k in self.kf_ids],
+            "loops": [
+                {
+                    "query_kf": r.query_kf_id,
+                    "match_kf": r.match_kf_id,
+                    "inliers": r.inliers,
+                    "active": r.active,
+                    "match_body_from_query_body": vec(r.match_body_from_query_body),
+                }
+                for r in self.loops
+            ],
+        }
+
 
 def loop_closed_poses(
     frame_t_ns: np.ndarray,

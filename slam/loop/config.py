@@ -62,6 +62,9 @@ class LoopClosureConfig:
     robust: str = "gnc"
     """Robust treatment of loop edges in PGO: gnc (graduated non-convexity, truncated least
     squares: outliers get weight 0), cauchy, huber or none."""
+    debug_graph: bool = False
+    """Put the final pose graph in the run's stats (``loop_closure.graph``: keyframe times,
+    segments, odometry and corrected poses, loop edges) for offline analysis."""
     pgo_process: bool = True
     """Run pose-graph optimisation in a worker process (GTSAM holds the GIL)."""
     reloc_candidates: int = 3

@@ -35,6 +35,65 @@ from slam.stage import Latest, Stage, StageError
 log = logging.getLogger(__name__)
 
 REFRESH_LAST_KEYFRAMES = 30  # odometry poses re-read per new keyframe (the back end's window)
+FULL_REFRESH_EVERY = 10  # ... and every keyframe's, every this many keyframes (see below)
+
+
+class OdometryRefresher:
+    """Which keyframes' odometry poses changed since they were last handed to the closer.
+
+    Every keyframe, the last ``REFRESH_LAST_KEYFRAMES`` are re-read (the back end's window keeps
+    refining them). Every ``FULL_REFRESH_EVERY`` keyframes, *all* are re-read and the changed
+    ones resent: measured on the hall sequence at ``--speed max``, the back end's first
+    (gravity-aligning) estimate arrived ~40 keyframes late, after the first 10 keyframes had
+    left the recent window, so they stayed in the pre-initialisation VO frame (a 94 deg wrong
+    odometry edge, and loops to the start rejected by the robust kernel).
+    """
+
+    def __init__(self, odometry_pose: Callable[[int], np.ndarray | None]):
+        self._source = odometry_pose
+        self.sent: dict[int, np.ndarray] = {}
+        self._order: list[int] = []
+        self.invalid_poses = 0
+
+    def odometry_pose(self, kid: int) -> np.ndarray | None:
+        """The source's pose when it is a rigid transform, else None (counted): measured, a
+        diverging back end once published a keyframe pose with a 'rotation' of norm ~12."""
+        pose = self._source(kid)
+        if pose is None:
+            return None
+        pose = np.asarray(pose, dtype=float)
+        rot = pose[:3, :3]
+        if (
+            not np.all(np.isfinite(pose))
+            or np.abs(rot.T @ rot - np.eye(3)).max() > 1e-6
+            or np.linalg.det(rot) <= 0
+        ):
+            self.invalid_poses += 1
+            return None
+        return pose
+
+    def refreshed(self) -> dict[int, np.ndarray]:
+        """Changed poses to resend before the next keyframe (also recorded as sent)."""
+        full = len(self._order) % FULL_REFRESH_EVERY == 0
+        ids = self._order if full else self._order[-REFRESH_LAST_KEYFRAMES:]
+        out: dict[int, np.ndarray] = {}
+        for kid in ids:
+            pose = self.odometry_pose(kid)
+            if pose is None:
+                continue
+            old = self.sent.get(kid)
+            if old is None or not np.array_equal(old, pose):
+                out[kid] = np.array(pose, dtype=float)
+                self.sent[kid] = out[kid]
+        return out
+
+    def new_keyframe(self, kid: int, fallback: np.ndarray) -> np.ndarray:
+        """The odometry pose to send with a new keyframe (``fallback`` when none is known)."""
+        pose = self.odometry_pose(kid)
+        odom = np.array(fallback if pose is None else pose, dtype=float)
+        self.sent[kid] = odom
+        self._order.append(kid)
+        return odom
 
 
 def _warm_up() -> bool:
@@ -66,6 +125,7 @@ class LoopClosureStage(Stage):
         self.closer = LoopCloser(calib, cfg, vocabulary, inline_pgo=False)
         self.relocaliser = Relocaliser(calib, self.closer.store, cfg, self.closer.vocab)
         self.odometry_pose = odometry_pose
+        self.refresher = OdometryRefresher(odometry_pose)
         self.on_correction = on_correction
         self.latest = Latest()
         self.events: list[LoopEvent] = []
@@ -82,12 +142,9 @@ class LoopClosureStage(Stage):
         if not isinstance(msg, Keyframe):
             return
         with self._lock:
-            for k in self.closer.kf_ids[-REFRESH_LAST_KEYFRAMES:]:
-                pose = self.odometry_pose(k)
-                if pose is not None:
-                    self.closer.update_odometry(k, pose)
-            pose = self.odometry_pose(msg.keyframe_id)
-            odom = msg.world_from_body_vo if pose is None else pose
+            for k, pose in self.refresher.refreshed().items():
+                self.closer.update_odometry(k, pose)
+            odom = self.refresher.new_keyframe(msg.keyframe_id, msg.world_from_body_vo)
             event = self.closer.add_keyframe(msg, odom)
             if event is not None:
                 self.events.append(event)
@@ -191,4 +248,7 @@ class LoopClosureStage(Stage):
                 if e.status == "rejected"
             ][:50]
             out["relocalisation"] = self.relocaliser.stats()
+            out["invalid_odometry_poses"] = self.refresher.invalid_poses
+            if self.cfg.debug_graph:
+                out["graph"] = self.closer.graph_dump()
         return out

@@ -23,7 +23,7 @@ import numpy as np
 from slam.calibration import Calibration
 from slam.loop.config import LoopClosureConfig
 from slam.loop.relocaliser import Relocaliser
-from slam.loop.stage import REFRESH_LAST_KEYFRAMES
+from slam.loop.stage import OdometryRefresher
 from slam.loop.store import KeyframeDescription, KeyframeStore
 from slam.loop.vocabulary import load_default_vocabulary
 from slam.messages import EndOfStream, Keyframe, LoopCorrection
@@ -107,6 +107,8 @@ def _worker(calib: Calibration, cfg: LoopClosureConfig, inbox: Any, outbox: Any)
         }
         for r in closer.loops
     ]
+    if cfg.debug_graph:
+        summary["graph"] = closer.graph_dump()
     outbox.put(_LoopFinal(summary, closer.keyframe_map_from_odom(), closer.corrected_poses()))
 
 
@@ -123,6 +125,7 @@ class LoopClosureWorkerStage(Stage):
         super().__init__("loop", maxsize=256, threaded=True)
         self.cfg = cfg
         self.odometry_pose = odometry_pose
+        self.refresher = OdometryRefresher(odometry_pose)
         self.on_correction = on_correction
         self.latest = Latest()
         self.store = KeyframeStore()
@@ -130,7 +133,6 @@ class LoopClosureWorkerStage(Stage):
         self._lock = threading.RLock()
         self.t_ns_of: dict[int, int] = {}
         self.segment_of: dict[int, int] = {}
-        self._sent: list[int] = []
         self._final: _LoopFinal | None = None
         self._events: list[tuple[str, str]] = []
         self._worker = WorkerProcess(
@@ -141,24 +143,23 @@ class LoopClosureWorkerStage(Stage):
     def process(self, msg: Any) -> None:
         if not isinstance(msg, Keyframe):
             return
-        refreshed = {}
-        for kid in self._sent[-REFRESH_LAST_KEYFRAMES:]:
-            pose = self.odometry_pose(kid)
-            if pose is not None:
-                refreshed[kid] = pose
-        pose = self.odometry_pose(msg.keyframe_id)
-        odom = msg.world_from_body_vo if pose is None else pose
+        refreshed = self.refresher.refreshed()
+        odom = self.refresher.new_keyframe(msg.keyframe_id, msg.world_from_body_vo)
+        with self.store.lock:  # the relocaliser answers in the keyframe's current odometry
+            for kid, pose in refreshed.items():
+                if self.store.has(kid):
+                    self.store.set_odometry(kid, pose)
         with self._lock:
             self.t_ns_of[msg.keyframe_id] = msg.t_ns
             self.segment_of[msg.keyframe_id] = msg.segment_id
-        self._sent.append(msg.keyframe_id)
         self._worker.put(_LoopInput(dataclasses.replace(msg, image_right=None), odom, refreshed))
 
     def _on_worker_item(self, item: Any) -> bool:
         if isinstance(item, _LoopOutput):
             d = item.description
             with self.store.lock:  # the relocaliser reads under the same lock
-                self.store.add_description(d, item.world_from_body_odom)
+                latest = self.refresher.sent.get(d.kf_id, item.world_from_body_odom)
+                self.store.add_description(d, latest)
                 self.store.database.add(d.kf_id, d.t_ns, d.bow)
             if item.status:
                 self._events.append((item.status, item.reason))
@@ -200,4 +201,5 @@ class LoopClosureWorkerStage(Stage):
     def stats(self) -> dict[str, Any]:
         out: dict[str, Any] = {} if self._final is None else dict(self._final.stats)
         out["relocalisation"] = self.relocaliser.stats()
+        out["invalid_odometry_poses"] = self.refresher.invalid_poses
         return out

@@ -1,0 +1,52 @@
+"""The loop stages' odometry refresh: late frame changes reach every keyframe, invalid poses
+from the source are ignored."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from slam.geometry import make_transform, so3_exp
+from slam.loop.stage import FULL_REFRESH_EVERY, REFRESH_LAST_KEYFRAMES, OdometryRefresher
+
+
+def test_late_frame_change_reaches_old_keyframes() -> None:
+    """A change of frame that arrives after the first keyframes left the recent window is
+    still resent within FULL_REFRESH_EVERY keyframes."""
+    poses: dict[int, np.ndarray] = {}
+    ref = OdometryRefresher(poses.get)
+    n_before = REFRESH_LAST_KEYFRAMES + 15
+    for k in range(n_before):
+        poses[k] = make_transform(np.eye(3), [0.1 * k, 0.0, 0.0])
+        ref.refreshed()
+        ref.new_keyframe(k, poses[k])
+    new_from_old = make_transform(so3_exp(np.array([0.0, np.pi / 2, 0.0])), [1.0, 2.0, 3.0])
+    for k in poses:
+        poses[k] = new_from_old @ poses[k]
+    resent: dict[int, np.ndarray] = {}
+    for k in range(n_before, n_before + FULL_REFRESH_EVERY):
+        resent.update(ref.refreshed())
+        poses[k] = make_transform(np.eye(3), [0.1 * k, 0.0, 0.0])
+        ref.new_keyframe(k, poses[k])
+    assert set(range(n_before)) <= set(resent)
+    np.testing.assert_allclose(resent[0], poses[0])
+    # nothing changed since: nothing is resent
+    for _ in range(FULL_REFRESH_EVERY):
+        assert not ref.refreshed()
+        k = max(poses) + 1
+        poses[k] = np.eye(4)
+        ref.new_keyframe(k, poses[k])
+
+
+def test_invalid_source_poses_are_ignored() -> None:
+    bad = np.eye(4)
+    bad[:3, :3] *= 3.0  # not a rotation
+    nan = np.full((4, 4), np.nan)
+    poses = {0: np.eye(4), 1: bad, 2: nan}
+    ref = OdometryRefresher(poses.get)
+    fallback = make_transform(np.eye(3), [1.0, 0.0, 0.0])
+    for k in range(3):
+        ref.refreshed()
+        sent = ref.new_keyframe(k, fallback)
+        expected = poses[0] if k == 0 else fallback
+        np.testing.assert_allclose(sent, expected)
+    assert ref.invalid_poses >= 2
