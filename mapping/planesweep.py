@@ -178,15 +178,20 @@ class _RefStats:
         var = _box(self.img * self.img, win) - self.mean * self.mean
         self.std = np.sqrt(np.maximum(var, 0.0))
         self.inv_std = (1.0 / np.maximum(self.std, 1e-3)).astype(np.float32)
-        self.mean_inv_std = (self.mean * self.inv_std).astype(np.float32)
+        self.neg_mean_inv_std = (-self.mean * self.inv_std).astype(np.float32)
+        r = win // 2  # rows reflected above and below, as the box filter's border does
+        self.img_padded = cv2.copyMakeBorder(self.img, r, r, 0, 0, cv2.BORDER_REFLECT)
 
 
 class _StripSweep:
     """Sweep of all planes over one strip of reference rows with preallocated buffers.
 
-    Buffers cover the strip plus ``window // 2`` halo rows on each side (the box filters of the
-    core rows see exactly the rows they would see on the full image); scores are kept for the
-    core rows only. Every OpenCV call writes into a buffer (``dst=``): no per-plane allocation.
+    The buffers hold the strip's rows plus ``r = window // 2`` halo rows on each side (reflected
+    at the image's top and bottom, as the full-image box filter would), so the box filters of
+    the core rows see exactly what they would see on the full image. The three images whose
+    window means ZNCC needs (I_s, I_s^2, I_r I_s, all warped) are stacked in one tall buffer and
+    box-filtered by ONE call (a quarter cheaper than three; the rows where the stacked images
+    meet are halo rows, never used). Every OpenCV call writes into a buffer (``dst=``).
     """
 
     def __init__(
@@ -199,25 +204,30 @@ class _StripSweep:
         rows: tuple[int, int],
     ) -> None:
         h, w = ref.img.shape
-        r = cfg.window // 2
+        self.r = r = cfg.window // 2
         self.y0, self.y1 = rows
-        self.ya, self.yb = max(0, self.y0 - r), min(h, self.y1 + r)
-        self.c0 = self.y0 - self.ya
-        self.c1 = self.c0 + (self.y1 - self.y0)
+        self.top, self.bottom = self.y0 == 0, self.y1 == h
+        c = self.y1 - self.y0
+        self.n = n = c + 2 * r
         self.w = w
         self.ref, self.srcs, self.cfg, self.k = ref, srcs, cfg, k
         self.kernel = _box_kernel(cfg.window)
-        # Strip homographies: destination row y of the buffer is reference row y + ya.
+        # Strip homographies: buffer row y is reference row y + y0 - r.
         self.homs = homs.copy()
-        self.homs[..., :, 2] += self.ya * homs[..., :, 1]
-        n, c = self.yb - self.ya, self.y1 - self.y0
-        buf = lambda rows_: np.empty((rows_, w), np.float32)  # noqa: E731
-        self.warped, self.mu_s, self.mu_ss, self.mu_rs, self.tmp = (buf(n) for _ in range(5))
-        self.view_scores = [buf(c) for _ in srcs]
-        self.tmp_c = buf(c)
-        self.ref_img = ref.img[self.ya : self.yb]
+        self.homs[..., :, 2] += (self.y0 - r) * homs[..., :, 1]
+        self.stack = np.empty((3 * n, w), np.float32)
+        self.boxed = np.empty((3 * n, w), np.float32)
+        self.warped, self.squared, self.product = (
+            self.stack[j * n : (j + 1) * n] for j in range(3)
+        )
+        self.mu_s_c, self.mu_ss_c, self.mu_rs_c = (
+            self.boxed[j * n + r : j * n + r + c] for j in range(3)
+        )
+        self.view_scores = [np.empty((c, w), np.float32) for _ in srcs]
+        self.tmp_c = np.empty((c, w), np.float32)
+        self.ref_img = ref.img_padded[self.y0 : self.y1 + 2 * r]
         self.ref_inv_std = ref.inv_std[self.y0 : self.y1]
-        self.ref_mean_inv_std = ref.mean_inv_std[self.y0 : self.y1]
+        self.ref_neg_mean_inv_std = ref.neg_mean_inv_std[self.y0 : self.y1]
 
     def _box(self, src: np.ndarray, dst: np.ndarray) -> None:
         cv2.sepFilter2D(
@@ -225,15 +235,21 @@ class _StripSweep:
         )
 
     def _warp(self, view: int, plane: int) -> None:
+        warped, r = self.warped, self.r
         cv2.warpPerspective(
             self.srcs[view],
             self.homs[view, plane],
-            (self.w, self.yb - self.ya),
-            dst=self.warped,
+            (self.w, self.n),
+            dst=warped,
             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
             borderMode=cv2.BORDER_CONSTANT,
             borderValue=np.nan,
         )
+        if self.top:  # reflect like cv2.BORDER_REFLECT: row -1 = row 0
+            warped[:r] = warped[r : 2 * r][::-1]
+        if self.bottom:
+            e = self.n - r
+            warped[e:] = warped[e - r : e][::-1]
 
     def _score_zncc(self, out: np.ndarray) -> None:
         """Windowed ZNCC in [-1, 1] of the warped source; windows leaving the source get -1.
@@ -241,21 +257,12 @@ class _StripSweep:
         ``zncc = (box(I_r I_s) - mu_r mu_s) / (sigma_r sigma_s)``, evaluated as
         ``(box(I_r I_s) / sigma_r - (mu_r / sigma_r) mu_s) / sigma_s`` on the core rows.
         """
-        warped, tmp, c0, c1 = self.warped, self.tmp, self.c0, self.c1
-        self._box(warped, self.mu_s)
-        cv2.multiply(warped, warped, dst=tmp)
-        self._box(tmp, self.mu_ss)
-        cv2.multiply(self.ref_img, warped, dst=tmp)
-        self._box(tmp, self.mu_rs)
-        mu_s, mu_ss, mu_rs, tmp_c = (
-            self.mu_s[c0:c1],
-            self.mu_ss[c0:c1],
-            self.mu_rs[c0:c1],
-            self.tmp_c,
-        )
+        cv2.multiply(self.warped, self.warped, dst=self.squared)
+        cv2.multiply(self.ref_img, self.warped, dst=self.product)
+        self._box(self.stack, self.boxed)
+        mu_s, mu_ss, mu_rs, tmp_c = self.mu_s_c, self.mu_ss_c, self.mu_rs_c, self.tmp_c
         cv2.multiply(mu_rs, self.ref_inv_std, dst=mu_rs)
-        cv2.multiply(self.ref_mean_inv_std, mu_s, dst=tmp_c)
-        cv2.subtract(mu_rs, tmp_c, dst=mu_rs)  # cov / sigma_r
+        cv2.accumulateProduct(self.ref_neg_mean_inv_std, mu_s, mu_rs)  # cov / sigma_r
         cv2.multiply(mu_s, mu_s, dst=tmp_c)
         cv2.subtract(mu_ss, tmp_c, dst=mu_ss)  # var_s
         cv2.max(mu_ss, 1e-2, dst=mu_ss)
@@ -265,9 +272,10 @@ class _StripSweep:
 
     def _score_sad(self, out: np.ndarray) -> None:
         """Negated windowed mean absolute difference (higher is better); outside = -255."""
-        cv2.absdiff(self.ref_img, self.warped, dst=self.tmp)
-        self._box(self.tmp, self.mu_rs)
-        np.negative(self.mu_rs[self.c0 : self.c1], out=out)
+        n = self.n
+        cv2.absdiff(self.ref_img, self.warped, dst=self.squared)
+        self._box(self.squared, self.boxed[n : 2 * n])
+        np.negative(self.mu_ss_c, out=out)
         cv2.patchNaNs(out, -255.0)
 
     def _aggregate(self, out: np.ndarray) -> None:
@@ -345,6 +353,8 @@ def plane_sweep(
         raise ValueError("plane_sweep needs at least one source view")
     ref = _RefStats(to_gray_f32(ref_image), cfg.window)
     h, w = ref.img.shape
+    if min(h, w) < cfg.window:
+        raise ValueError(f"image {w}x{h} is smaller than the {cfg.window}-pixel window")
     srcs = [np.ascontiguousarray(to_gray_f32(s.image)) for s in sources]
     k = cfg.best_k or (len(sources) + 1) // 2
     depths = inverse_depth_planes(cfg)
@@ -359,20 +369,23 @@ def plane_sweep(
     best_next = np.empty((h, w), np.float32)
     second = np.empty((h, w), np.float32)
 
-    def sweep_strip(y0: int) -> None:
-        y1 = min(h, y0 + _STRIP_ROWS)
+    # Strips of about _STRIP_ROWS rows (fixed by the image height, not by the thread count).
+    n_strips = max(1, round(h / _STRIP_ROWS))
+    bounds = np.linspace(0, h, n_strips + 1).round().astype(int)
+
+    def sweep_strip(j: int) -> None:
+        y0, y1 = int(bounds[j]), int(bounds[j + 1])
         out = _StripSweep(ref, srcs, homs, cfg, k, (y0, y1)).run(n_planes)
         for dst, part in zip((best, best_i, best_prev, best_next, second), out):
             dst[y0:y1] = part
 
-    starts = range(0, h, _STRIP_ROWS)
-    n_threads = max(1, min(cfg.threads, len(starts)))
+    n_threads = max(1, min(cfg.threads, n_strips))
     if n_threads == 1:
-        for y0 in starts:
-            sweep_strip(y0)
+        for j in range(n_strips):
+            sweep_strip(j)
     else:  # OpenCV and numpy release the GIL: strips run truly in parallel
         with ThreadPoolExecutor(n_threads) as pool:
-            list(pool.map(sweep_strip, starts))
+            list(pool.map(sweep_strip, range(n_strips)))
 
     # Parabola through (i-1, i, i+1); a missing neighbour (edge plane) means no refinement.
     denom = best_prev - 2.0 * best + best_next
