@@ -3,7 +3,10 @@
 Plane sweep and TSDF fusion are heavy numpy/OpenCV work; in a worker process they never stall
 the front end. This stage (a thread of the main process) forwards keyframes with their pose at
 creation, drops a keyframe when the worker is more than ``max_backlog`` keyframes behind (the
-lag is counted and reported, never queued without bound), and receives per-keyframe reports and
+lag is counted and reported, never queued without bound: :meth:`MapperStage.stats` gives
+``keeps_up``, the dropped count and fraction, and per keyframe ``lag_behind_s``, how far in
+sequence time the mapper trails the newest keyframe, and ``lag_wall_s``, arrival to report, as
+p50/p90/p99/max), and receives per-keyframe reports and
 periodic mesh snapshots (for rerun). At the end, keyframe poses are replaced by the final
 (back-end optimised, loop-closed) ones: the mapper **re-integrates** the keyframes that moved
 (de-integrate with the old pose, integrate with the new), then writes ``mesh.ply``.
@@ -174,9 +177,17 @@ class MapperStage(Stage):
         self.body_from_cam0 = calib.cameras[0].body_from_cam
         self.sent: list[int] = []
         self.reports: list[MapperReport] = []
+        self.received = 0
+        self.newest_t_ns = 0
         self.dropped_lag = 0
         self.max_backlog_seen = 0
         self.max_lag_s = 0.0
+        self._sent_wall: dict[int, float] = {}
+        self.lag_wall_ms: list[float] = []
+        """Per processed keyframe: wall time from its arrival here to its report (queue + work)."""
+        self.lag_behind_ms: list[float] = []
+        """Per processed keyframe: sequence time from it to the newest keyframe that had arrived
+        when its report came back (how far behind the live front the mapper is)."""
         self.summary = _MapperSummary()
         self._lock = threading.Lock()
         self._done = threading.Event()
@@ -192,10 +203,15 @@ class MapperStage(Stage):
     def _handle_output(self, item: Any) -> bool:
         """Returns True when the worker has finished."""
         if isinstance(item, MapperReport):
+            now = time.perf_counter()
             with self._lock:
                 self.reports.append(item)
-                if self.sent:
-                    self.max_lag_s = max(self.max_lag_s, (self.sent[-1] - item.t_ns) * 1e-9)
+                behind_s = max(self.newest_t_ns - item.t_ns, 0) * 1e-9
+                self.max_lag_s = max(self.max_lag_s, behind_s)
+                self.lag_behind_ms.append(behind_s * 1e3)
+                sent_at = self._sent_wall.pop(item.t_ns, None)
+                if sent_at is not None:
+                    self.lag_wall_ms.append((now - sent_at) * 1e3)
         elif isinstance(item, MeshSnapshot):
             self.on_mesh(item)
         elif isinstance(item, _MapperSummary):
@@ -225,17 +241,22 @@ class MapperStage(Stage):
             return
         pose = msg.world_from_body_vo @ self.body_from_cam0
         item = _MapKeyframe(msg.t_ns, msg.image_left, msg.image_right, pose)
+        with self._lock:
+            self.received += 1
+            self.newest_t_ns = max(self.newest_t_ns, msg.t_ns)
+            backlog = len(self.sent) - len(self.reports)
         if not self.use_process:
             self.sent.append(msg.t_ns)
+            self._sent_wall[msg.t_ns] = time.perf_counter()
             self._handle_output(_add(self._mapper, item))
             return
-        with self._lock:
-            backlog = len(self.sent) - len(self.reports)
         self.max_backlog_seen = max(self.max_backlog_seen, backlog)
         if backlog >= self.cfg.max_backlog:
             self.dropped_lag += 1
             return
-        self.sent.append(msg.t_ns)
+        with self._lock:
+            self.sent.append(msg.t_ns)
+            self._sent_wall[msg.t_ns] = time.perf_counter()
         self._worker.put(item)
 
     def finish(self, final_world_from_body: dict[int, np.ndarray], mesh_path: Path | None) -> None:
@@ -268,12 +289,24 @@ class MapperStage(Stage):
             self._worker.terminate()
 
     def stats(self) -> dict[str, Any]:
+        """The ``mapping`` section of stats.json (lags in seconds, see the module docstring)."""
         with self._lock:
             reports = list(self.reports)
+            lag_wall, lag_behind = list(self.lag_wall_ms), list(self.lag_behind_ms)
         fused = [r for r in reports if not r.skipped]
+
+        def seconds(summary: dict[str, float]) -> dict[str, float]:
+            return {
+                k.replace("_ms", "_s"): (v / 1e3 if k != "count" else v) for k, v in summary.items()
+            }
 
         return {
             "mode": "process" if self.use_process else "in-process",
+            "keeps_up": self.dropped_lag == 0,
+            "keyframes_received": self.received,
+            "dropped_fraction": self.dropped_lag / max(self.received, 1),
+            "lag_behind_s": seconds(latency_summary(lag_behind)),
+            "lag_wall_s": seconds(latency_summary(lag_wall)),
             "keyframes_sent": len(self.sent),
             "keyframes_fused": len(fused),
             "keyframes_skipped_static": len(reports) - len(fused),

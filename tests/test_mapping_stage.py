@@ -1,0 +1,74 @@
+"""The live mapper stage: lag and drops are reported in its stats (stats.json 'mapping')."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from synthetic_planes import PlaneScene, orbit_poses
+
+from mapping.stage import MapperStage, MapperStageConfig
+from slam.calibration import Calibration, CameraCalibration, CameraIntrinsics, ImuCalibration
+from slam.messages import Keyframe
+
+W, H = 320, 240
+K = np.array([[230.0, 0.0, 160.0], [0.0, 230.0, 120.0], [0.0, 0.0, 1.0]])
+
+
+def _calibration() -> Calibration:
+    intr = CameraIntrinsics(W, H, 230.0, 230.0, 160.0, 120.0)
+    right = np.eye(4)
+    right[0, 3] = 0.11  # body_from_cam1: 11 cm to the right
+    cams = (CameraCalibration("cam0", intr), CameraCalibration("cam1", intr, right))
+    return Calibration(cams, ImuCalibration(), 0)
+
+
+def _keyframes(n: int) -> list[Keyframe]:
+    scene = PlaneScene()
+    out = []
+    for i, pose in enumerate(orbit_poses(n)):
+        left, _ = scene.render(pose, K, (H, W))
+        right_pose = pose.copy()
+        right_pose[:3, 3] += pose[:3, 0] * 0.11
+        right, _ = scene.render(right_pose, K, (H, W))
+        empty = np.zeros((0, 2))
+        out.append(
+            Keyframe(
+                int(i * 0.5e9),
+                i,
+                i,
+                0,
+                pose,
+                np.zeros(0, np.int64),
+                empty,
+                empty,
+                np.zeros((0, 3)),
+                left,
+                right,
+            )  # fmt: skip
+        )
+    return out
+
+
+@pytest.mark.parametrize("threaded", [False, True])
+def test_stage_reports_lag_and_drops(threaded):
+    cfg = MapperStageConfig(enabled=True, num_planes=32, max_backlog=1, final_reintegration=False)
+    stage = MapperStage(_calibration(), cfg, lambda mesh: None, threaded=threaded)
+    kfs = _keyframes(6)
+    for kf in kfs:  # a burst: the worker cannot finish one before the next arrives
+        stage.process(kf)
+    stage.finish({}, None)
+    stats = stage.stats()
+    assert stats["keyframes_received"] == len(kfs)
+    assert stats["keyframes_sent"] + stats["keyframes_dropped_lag"] == len(kfs)
+    processed = stats["keyframes_fused"] + stats["keyframes_skipped_static"]
+    assert processed == stats["keyframes_sent"]
+    assert stats["lag_wall_s"]["count"] == processed
+    assert stats["lag_behind_s"]["count"] == processed
+    assert stats["lag_wall_s"]["p50_s"] > 0
+    assert stats["keeps_up"] == (stats["keyframes_dropped_lag"] == 0)
+    if threaded:  # the burst overflows a backlog of one keyframe
+        assert stats["keyframes_dropped_lag"] >= 1 and not stats["keeps_up"]
+        assert stats["dropped_fraction"] == stats["keyframes_dropped_lag"] / len(kfs)
+    else:  # in-process: every keyframe is mapped before the next, never behind
+        assert stats["keyframes_dropped_lag"] == 0
+        assert stats["lag_behind_s"]["max_s"] == 0.0
