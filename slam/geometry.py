@@ -32,6 +32,23 @@ def invert_transform(a_from_b: np.ndarray) -> np.ndarray:
     return out
 
 
+def nearest_rigid(transform: np.ndarray) -> np.ndarray:
+    """The rigid 4x4 closest to ``transform``: its rotation block projected onto SO(3) (SVD).
+
+    Composing rigid transforms in floating point slowly loses orthonormality; a correction
+    computed from such a pose and applied to every other pose feeds the error back, and it
+    grows geometrically over thousands of corrections. Projecting the correction stops that.
+    """
+    u, _, vt = np.linalg.svd(transform[:3, :3])
+    rot = u @ vt
+    if np.linalg.det(rot) < 0:
+        rot = u @ np.diag([1.0, 1.0, -1.0]) @ vt
+    out = np.eye(4)
+    out[:3, :3] = rot
+    out[:3, 3] = transform[:3, 3]
+    return out
+
+
 def transform_points(a_from_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
     """Map (N, 3) points from frame b to frame a."""
     return points_b @ a_from_b[:3, :3].T + a_from_b[:3, 3]
@@ -84,6 +101,20 @@ def so3_exp(omega: np.ndarray) -> np.ndarray:
         return np.eye(3) + k + 0.5 * (k @ k)
     theta = np.sqrt(theta2)
     return np.eye(3) + (np.sin(theta) / theta) * k + ((1.0 - np.cos(theta)) / theta2) * (k @ k)
+
+
+def so3_exp_batch(omegas: np.ndarray) -> np.ndarray:
+    """Rotation matrices (N, 3, 3) for rotation vectors (N, 3) (rad): :func:`so3_exp`, vectorised."""
+    w = np.asarray(omegas, dtype=float).reshape(-1, 3)
+    theta2 = np.einsum("ni,ni->n", w, w)
+    k = np.zeros((len(w), 3, 3))
+    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
+    k[:, 1, 0], k[:, 2, 0], k[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
+    small = theta2 < 1e-12
+    theta = np.sqrt(np.where(small, 1.0, theta2))
+    a = np.where(small, 1.0, np.sin(theta) / theta)
+    b = np.where(small, 0.5, (1.0 - np.cos(theta)) / np.where(small, 1.0, theta2))
+    return np.eye(3) + a[:, None, None] * k + b[:, None, None] * (k @ k)
 
 
 def so3_log(rotation: np.ndarray) -> np.ndarray:

@@ -26,7 +26,7 @@ from slam.calibration import Calibration
 from slam.config import FrontendConfig
 from slam.frontend.features import build_pyramid, detect_features, track_klt
 from slam.frontend.stereo import StereoMatcher
-from slam.geometry import invert_transform, make_transform
+from slam.geometry import invert_transform, make_transform, nearest_rigid
 from slam.imu_buffer import ImuBuffer, integrate_gyro, propagate_pose
 from slam.messages import Estimate, Keyframe, StereoFrame, TrackingResult
 
@@ -115,7 +115,10 @@ class FrontEnd:
         fe_pose = self.kf_poses.get(est.keyframe_id)
         if fe_pose is None or not self.mapped:
             return
-        correction = est.world_from_body @ invert_transform(fe_pose)
+        if not (np.isfinite(est.world_from_body).all() and np.isfinite(fe_pose).all()):
+            self.stats.state_log.append((est.t_ns, "back-end estimate ignored: not finite"))
+            return
+        correction = nearest_rigid(est.world_from_body @ invert_transform(fe_pose))
         self.stats.estimate_corrections += 1
         if not self.reframed:
             # The first initialised estimate moves us from the VO frame (the first body pose)
@@ -434,9 +437,15 @@ class FrontEnd:
         right_px = np.full((len(px), 2), np.nan)
         if frame.right is not None and len(px):
             pyr_right = build_pyramid(frame.right, self.cfg)
-            matches = self.stereo.match(pyr, pyr_right, px)
-            right_px[matches.ok] = matches.pixels_right[matches.ok]
             world_from_cam = self.world_from_body @ self.body_from_cam0
+            known_world = np.full((len(px), 3), np.nan)
+            for row, lid in enumerate(ids.tolist()):
+                if lid >= 0 and lid in self.landmarks:
+                    known_world[row] = self.landmarks[lid]
+            cam_from_world = invert_transform(world_from_cam)
+            known_cam = known_world @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+            matches = self.stereo.match(pyr, pyr_right, px, known_cam)
+            right_px[matches.ok] = matches.pixels_right[matches.ok]
             need = matches.ok & (ids < 0)
             pts_world = (
                 matches.points_cam0_m[need] @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
