@@ -107,7 +107,8 @@ class BackendStage(Stage):
         self.update_ms: list[float] = []
         self.keyframe_poses: dict[int, np.ndarray] = {}
         self.final_stats: dict[str, Any] = {}
-        self._pending: list[ImuSample] = []
+        self._pending: list[ImuBatch] = []
+        self._pending_samples = 0
         self._lock = threading.Lock()
         if self.use_process:
             self._worker = WorkerProcess(
@@ -148,22 +149,23 @@ class BackendStage(Stage):
     def _flush_imu(self) -> None:
         if not self._pending:
             return
-        batch = ImuBatch(
-            np.array([s.t_ns for s in self._pending], dtype=np.int64),
-            np.array([s.gyro_rad_s for s in self._pending]),
-            np.array([s.accel_m_s2 for s in self._pending]),
-        )
+        batch = ImuBatch.concatenate(self._pending)
         self._pending = []
+        self._pending_samples = 0
         self._worker.put(batch)
 
     def process(self, msg: Any) -> None:
         if isinstance(msg, ImuSample):
+            msg = ImuBatch.from_samples([msg])
+        if isinstance(msg, ImuBatch):
             if self.use_process:
                 self._pending.append(msg)
-                if len(self._pending) >= 50:
+                self._pending_samples += len(msg)
+                if self._pending_samples >= 50:
                     self._flush_imu()
             else:
-                self._estimator.add_imu(msg.t_ns, msg.gyro_rad_s, msg.accel_m_s2)
+                for i in range(len(msg)):
+                    self._estimator.add_imu(int(msg.t_ns[i]), msg.gyro_rad_s[i], msg.accel_m_s2[i])
         elif isinstance(msg, Keyframe):
             if self.use_process:
                 self._flush_imu()

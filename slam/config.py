@@ -42,6 +42,9 @@ class FrontendConfig:
     """Forward-backward check: max distance between a point and its back-tracked position."""
     stereo_max_epipolar_px: float = 1.5
     """Max distance from the epipolar line for a left-right match, pixels."""
+    stereo_known_point_levels: int = 1
+    """KLT pyramid levels above the base image when stereo-matching a tracked landmark (its
+    projection into the right image is the start)."""
     min_depth_m: float = 0.2
     """Closest accepted stereo depth, metres."""
     max_depth_m: float = 25.0
@@ -78,6 +81,11 @@ class PlayerConfig:
     """Frames waiting for the front end; when full in real-time playback, frames are dropped."""
     max_frames: int = 0
     """Stop after this many frames (0 = all)."""
+    gil_switch_interval_ms: float = 1.0
+    """Python's GIL switch interval during a concurrent run (Python's default is 5 ms). Every
+    OpenCV call the front end makes releases the GIL; getting it back from a thread running
+    Python (the player decoding, a queue feeder pickling) can take up to this long, several
+    times per frame. A shorter interval trades a little throughput for front-end latency."""
 
 
 @dataclass

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import bisect
+import math
 import threading
+from collections.abc import Iterable
 
 import numpy as np
 
-from slam.geometry import so3_exp
+from slam.geometry import so3_exp_batch
 from slam.messages import ImuSample
 
 
@@ -26,15 +28,20 @@ class ImuBuffer:
         self._keep_ns = keep_ns
 
     def append(self, sample: ImuSample) -> None:
-        if not (np.isfinite(sample.gyro_rad_s).all() and np.isfinite(sample.accel_m_s2).all()):
-            return  # the back end counts and reports bad samples; the front end just skips them
+        self.extend((sample,))
+
+    def extend(self, samples: Iterable[ImuSample]) -> None:
+        """Append samples in time order (one lock for all of them)."""
         with self._lock:
-            if self._t and sample.t_ns <= self._t[-1]:
-                return
-            self._t.append(sample.t_ns)
-            self._samples.append(sample)
-            if sample.t_ns - self._t[0] > 2 * self._keep_ns:  # trim in bulk: amortised O(1)
-                cut = bisect.bisect_left(self._t, sample.t_ns - self._keep_ns)
+            for sample in samples:
+                if not math.isfinite(float(np.sum(sample.gyro_rad_s) + np.sum(sample.accel_m_s2))):
+                    continue  # the back end counts and reports bad samples; the front end skips
+                if self._t and sample.t_ns <= self._t[-1]:
+                    continue
+                self._t.append(sample.t_ns)
+                self._samples.append(sample)
+            if self._t and self._t[-1] - self._t[0] > 2 * self._keep_ns:  # trim in bulk
+                cut = bisect.bisect_left(self._t, self._t[-1] - self._keep_ns)
                 del self._t[:cut]
                 del self._samples[:cut]
 
@@ -48,6 +55,23 @@ class ImuBuffer:
             return self._samples[i0:i1]
 
 
+def _intervals(
+    samples: list[ImuSample], t0_ns: int, t1_ns: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The piecewise-constant model over [t0, t1]: (dt_s (M,), gyro (M, 3), accel (M, 3)) of
+    the samples that cover a non-empty part of it, or None if the samples do not cover it."""
+    if not samples or samples[0].t_ns > t0_ns + 10_000_000 or samples[-1].t_ns < t1_ns - 10_000_000:
+        return None
+    t = np.fromiter((s.t_ns for s in samples), dtype=np.int64, count=len(samples))
+    start = np.maximum(t, t0_ns)
+    end = np.minimum(np.append(t[1:], t1_ns), t1_ns)
+    use = np.flatnonzero(end > start)
+    dt_s = (end[use] - start[use]) * 1e-9
+    gyro = np.array([samples[i].gyro_rad_s for i in use.tolist()], dtype=float).reshape(-1, 3)
+    accel = np.array([samples[i].accel_m_s2 for i in use.tolist()], dtype=float).reshape(-1, 3)
+    return dt_s, gyro, accel
+
+
 def integrate_gyro(
     samples: list[ImuSample], t0_ns: int, t1_ns: int, bias_gyro_rad_s: np.ndarray | None = None
 ) -> np.ndarray | None:
@@ -55,18 +79,14 @@ def integrate_gyro(
     samples do not cover [t0, t1]."""
     if t1_ns <= t0_ns:
         return np.eye(3)
-    if not samples or samples[0].t_ns > t0_ns + 10_000_000 or samples[-1].t_ns < t1_ns - 10_000_000:
+    model = _intervals(samples, t0_ns, t1_ns)
+    if model is None:
         return None
+    dt_s, gyro, _ = model
     bias = np.zeros(3) if bias_gyro_rad_s is None else bias_gyro_rad_s
     rot = np.eye(3)
-    for k, s in enumerate(samples):
-        start = max(s.t_ns, t0_ns)
-        end = samples[k + 1].t_ns if k + 1 < len(samples) else t1_ns
-        end = min(end, t1_ns)
-        if end <= start:
-            continue
-        dt = (end - start) * 1e-9
-        rot = rot @ so3_exp((s.gyro_rad_s - bias) * dt)
+    for step in so3_exp_batch((gyro - bias) * dt_s[:, None]):
+        rot = rot @ step
     return rot
 
 
@@ -84,26 +104,26 @@ def propagate_pose(
 
     Piecewise-constant samples, the same model as the preintegration. Returns None when the
     samples do not cover [t0, t1]. Used for the front end's pose prior, not for estimation.
+    Vectorised over the samples except for the chain of rotations.
     """
     if t1_ns <= t0_ns:
         return world_from_body.copy(), velocity_world_m_s.copy()
-    if not samples or samples[0].t_ns > t0_ns + 10_000_000 or samples[-1].t_ns < t1_ns - 10_000_000:
+    model = _intervals(samples, t0_ns, t1_ns)
+    if model is None:
         return None
+    dt_s, gyro, accel = model
+    steps = so3_exp_batch((gyro - bias_gyro_rad_s) * dt_s[:, None])
+    rots = np.empty((len(dt_s) + 1, 3, 3))  # world_from_body at the start of each interval
+    rots[0] = world_from_body[:3, :3]
+    for k, step in enumerate(steps):
+        rots[k + 1] = rots[k] @ step
     g = np.array([0.0, 0.0, -gravity_m_s2])
-    rot = world_from_body[:3, :3].copy()
-    pos = world_from_body[:3, 3].copy()
-    vel = np.asarray(velocity_world_m_s, dtype=float).copy()
-    for k, s in enumerate(samples):
-        start = max(s.t_ns, t0_ns)
-        end = min(samples[k + 1].t_ns if k + 1 < len(samples) else t1_ns, t1_ns)
-        if end <= start:
-            continue
-        dt = (end - start) * 1e-9
-        acc_world = rot @ (s.accel_m_s2 - bias_accel_m_s2) + g
-        pos = pos + vel * dt + 0.5 * acc_world * dt * dt
-        vel = vel + acc_world * dt
-        rot = rot @ so3_exp((s.gyro_rad_s - bias_gyro_rad_s) * dt)
+    acc_world = np.einsum("nij,nj->ni", rots[:-1], accel - bias_accel_m_s2) + g
+    dv = acc_world * dt_s[:, None]
+    vel0 = np.asarray(velocity_world_m_s, dtype=float)
+    vel_before = vel0 + np.vstack([np.zeros(3), np.cumsum(dv, axis=0)[:-1]])
+    dp = vel_before * dt_s[:, None] + 0.5 * acc_world * (dt_s**2)[:, None]
     out = np.eye(4)
-    out[:3, :3] = rot
-    out[:3, 3] = pos
-    return out, vel
+    out[:3, :3] = rots[-1]
+    out[:3, 3] = world_from_body[:3, 3] + dp.sum(axis=0)
+    return out, vel0 + dv.sum(axis=0)

@@ -6,6 +6,7 @@ names, picklable. Arrays are never mutated after construction.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -114,11 +115,32 @@ class EndOfStream:
 
 @dataclass(frozen=True, eq=False)
 class ImuBatch:
-    """Consecutive IMU samples sent together to a back-end worker process (fewer pickles)."""
+    """Consecutive IMU samples handed on together: the player sends the samples between two
+    frames as one message (one queue hand-off and thread wake-up per frame, not per sample), and
+    the back end forwards them to its worker process in larger batches (fewer pickles)."""
 
     t_ns: np.ndarray  # (N,) int64
     gyro_rad_s: np.ndarray  # (N, 3)
     accel_m_s2: np.ndarray  # (N, 3)
+
+    @staticmethod
+    def from_samples(samples: Sequence[ImuSample]) -> ImuBatch:
+        return ImuBatch(
+            np.array([s.t_ns for s in samples], dtype=np.int64),
+            np.array([s.gyro_rad_s for s in samples], dtype=float).reshape(-1, 3),
+            np.array([s.accel_m_s2 for s in samples], dtype=float).reshape(-1, 3),
+        )
+
+    @staticmethod
+    def concatenate(batches: Sequence[ImuBatch]) -> ImuBatch:
+        return ImuBatch(
+            np.concatenate([b.t_ns for b in batches]),
+            np.concatenate([b.gyro_rad_s for b in batches]),
+            np.concatenate([b.accel_m_s2 for b in batches]),
+        )
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
 
 
 @dataclass(frozen=True, eq=False)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import resource
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -35,6 +36,7 @@ from slam.loop.stage import LoopClosureStage
 from slam.loop.worker import LoopClosureWorkerStage
 from slam.messages import (
     BackendOutput,
+    ImuBatch,
     ImuSample,
     Keyframe,
     MeshSnapshot,
@@ -250,6 +252,9 @@ def run_slam(
     stages: list[Stage] = [fe_stage, *keyframe_consumers]
     if viewer is not None:
         stages.append(viewer)
+    switch_interval_s = sys.getswitchinterval()
+    if threaded and cfg.player.gil_switch_interval_ms > 0:
+        sys.setswitchinterval(cfg.player.gil_switch_interval_ms * 1e-3)  # restored at the end
     for s in stages:
         s.start()
 
@@ -361,6 +366,20 @@ def run_slam(
             loop_closed(traj),
         )
 
+    imu_pending: list[ImuSample] = []
+
+    def flush_imu() -> None:
+        """The IMU samples since the last frame, to the buffer and the IMU consumers at once."""
+        if not imu_pending:
+            return
+        if imu_buffer is not None:
+            imu_buffer.extend(imu_pending)
+        if imu_consumers:
+            batch = ImuBatch.from_samples(imu_pending)
+            for consumer in imu_consumers:
+                consumer.put(batch)
+        imu_pending.clear()
+
     try:
         for msg in seq.messages():
             if t_first_ns is None:
@@ -370,11 +389,9 @@ def run_slam(
                 if ahead > 0:
                     time.sleep(ahead)
             if isinstance(msg, ImuSample):
-                if imu_buffer is not None:
-                    imu_buffer.append(msg)
-                for consumer in imu_consumers:
-                    consumer.put(msg)
+                imu_pending.append(msg)  # handed on with the next frame, in one message
                 continue
+            flush_imu()
             if cfg.player.max_frames and frames_in >= cfg.player.max_frames:
                 break
             frames_in += 1
@@ -428,6 +445,7 @@ def run_slam(
         if viewer is not None:
             viewer.close()
             viewer.join()
+        sys.setswitchinterval(switch_interval_s)
         if error is None:
             error = next((s.error for s in stages if s.error is not None), None)
         if rec is not None:

@@ -45,8 +45,19 @@ class StereoMatcher:
         self.proj1 = np.hstack([self.r_10, self.t_10[:, None]])
 
     def match(
-        self, pyr_left: np.ndarray, pyr_right: np.ndarray, pixels_left: np.ndarray
+        self,
+        pyr_left: np.ndarray,
+        pyr_right: np.ndarray,
+        pixels_left: np.ndarray,
+        points_cam0_m: np.ndarray | None = None,
     ) -> StereoMatches:
+        """Match ``pixels_left`` (N, 2) into the right image.
+
+        ``points_cam0_m`` (N, 3, NaN rows where unknown): a known 3-D point per feature (a
+        tracked landmark). Its projection is the KLT start in the right image, close enough for
+        ``stereo_known_point_levels`` pyramid levels instead of the full pyramid that the
+        nominal-depth guess needs (about half the keyframe's stereo time on the room sequences).
+        """
         n = len(pixels_left)
         if n == 0:
             return StereoMatches(np.zeros(0, bool), np.zeros((0, 2)), np.zeros((0, 3)))
@@ -55,7 +66,27 @@ class StereoMatcher:
         guess = self.cam1.project(
             transform_points(self.cam1_from_cam0, rays0 * self.nominal_depth_m)
         )
-        px_right, ok = track_klt(pyr_left, pyr_right, pixels_left, self.cfg, guess_to=guess)
+        known = np.zeros(n, dtype=bool)
+        if points_cam0_m is not None:
+            pts_c1 = transform_points(self.cam1_from_cam0, np.asarray(points_cam0_m, float))
+            known = np.isfinite(pts_c1).all(axis=1) & (pts_c1[:, 2] > self.cfg.min_depth_m)
+            if known.any():
+                guess[known] = self.cam1.project(pts_c1[known])
+        px_right = np.zeros((n, 2), np.float32)
+        ok = np.zeros(n, dtype=bool)
+        for subset, levels in (
+            (known, self.cfg.stereo_known_point_levels),
+            (~known, self.cfg.klt_pyramid_levels),
+        ):
+            if subset.any():
+                px_right[subset], ok[subset] = track_klt(
+                    pyr_left,
+                    pyr_right,
+                    pixels_left[subset],
+                    self.cfg,
+                    guess_to=guess[subset],
+                    levels=levels,
+                )
         norm1 = self.cam1.undistort_points(px_right)
         rays1 = np.hstack([norm1, np.ones((n, 1))])
         # Epipolar distance of the right ray from the line E x0, in right-image pixels.
