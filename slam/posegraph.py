@@ -48,6 +48,8 @@ ROBUST_KINDS: tuple[str, ...] = ("none", "huber", "cauchy", "gnc")
 _G2O_TO_GTSAM = np.array([3, 4, 5, 0, 1, 2])
 _TRIU = np.triu_indices(6)
 _GNC_CHI2 = float(chi2_dist.ppf(0.99, 6))  # 16.8: inlier chi2 bound of one 6-dof edge
+GNC_INLIER_CHI2 = _GNC_CHI2
+DEFAULT_KERNEL_WIDTH = {"huber": 1.345, "cauchy": 1.0}
 
 
 @dataclass(frozen=True, eq=False)

@@ -54,6 +54,7 @@ def analyse(run_dir: Path, seq_path: Path) -> dict[str, Any]:
     from datasets.open import open_sequence
     from slam.errors import SlamError
     from slam.geometry import invert_transform
+    from slam.loop.closer import odometry_sigmas
     from slam.loop.config import LoopClosureConfig
 
     stats = json.loads((run_dir / "stats.json").read_text())
@@ -64,6 +65,13 @@ def analyse(run_dir: Path, seq_path: Path) -> dict[str, Any]:
     if gt is None or len(gt) == 0:
         raise SlamError(f"{seq_path}: no ground truth")
     cfg = LoopClosureConfig()
+    if (run_dir / "config.yaml").exists():  # the weights the run used
+        from slam.config import load_config
+
+        try:
+            cfg = load_config(str(run_dir / "config.yaml")).loop
+        except SlamError:  # a config of an older version: today's defaults
+            pass
     t_ns = np.asarray(graph["t_ns"], dtype=np.int64)
     ids = [int(k) for k in graph["kf_ids"]]
     index = {k: i for i, k in enumerate(ids)}
@@ -83,6 +91,13 @@ def analyse(run_dir: Path, seq_path: Path) -> dict[str, Any]:
         e_m, e_deg = _rel_error(meas, truth)
         o_m, o_deg = _rel_error(invert_transform(odom[i]) @ odom[j], truth)
         c_m, c_deg = _rel_error(invert_transform(corr[i]) @ corr[j], truth)
+        var_m = var_rad = 0.0  # the odometry's modelled uncertainty over the loop's span
+        if seg[i] == seg[j]:
+            for k in range(i + 1, j + 1):
+                rel = invert_transform(odom[k - 1]) @ odom[k]
+                s_m, s_rad = odometry_sigmas(rel, (t_ns[k] - t_ns[k - 1]) * 1e-9, cfg)
+                var_m += s_m**2
+                var_rad += s_rad**2
         loops.append(
             {
                 "query": ids[j],
@@ -95,6 +110,8 @@ def analyse(run_dir: Path, seq_path: Path) -> dict[str, Any]:
                 "loop_err_deg": e_deg,
                 "odom_err_mm": o_m * 1e3,
                 "odom_err_deg": o_deg,
+                "odom_sigma_mm": float(np.sqrt(3 * var_m) * 1e3),
+                "odom_sigma_deg": float(np.degrees(np.sqrt(3 * var_rad))),
                 "corrected_err_mm": c_m * 1e3,
                 "corrected_err_deg": c_deg,
             }
@@ -109,11 +126,7 @@ def analyse(run_dir: Path, seq_path: Path) -> dict[str, Any]:
         truth = invert_transform(true[k - 1]) @ true[k]
         e_m, e_deg = _rel_error(rel, truth)
         length = float(np.linalg.norm(rel[:3, 3]))
-        from slam.geometry import so3_log
-
-        angle = float(np.linalg.norm(so3_log(rel[:3, :3])))
-        sigma_m = cfg.odom_sigma_m + cfg.odom_sigma_ratio * length
-        sigma_rad = cfg.odom_sigma_rad + 0.01 * angle
+        sigma_m, sigma_rad = odometry_sigmas(rel, (t_ns[k] - t_ns[k - 1]) * 1e-9, cfg)
         # per-axis sigma: a 3-D error's norm is ~sqrt(3) sigma
         norm_t.append(e_m / (sigma_m * np.sqrt(3)))
         norm_r.append(np.radians(e_deg) / (sigma_rad * np.sqrt(3)))
@@ -152,7 +165,8 @@ def main(argv: list[str] | None = None) -> int:
             f"  {lp['query']:4d} -> {lp['match']:4d}  dt {lp['dt_s']:6.1f} s  "
             f"dist {lp['dist_m']:.2f} m  inl {lp['inliers']:3d}  "
             f"loop {lp['loop_err_mm']:6.1f} mm {lp['loop_err_deg']:.2f} deg | "
-            f"odom {lp['odom_err_mm']:6.1f} mm {lp['odom_err_deg']:.2f} deg | "
+            f"odom {lp['odom_err_mm']:6.1f} mm {lp['odom_err_deg']:.2f} deg "
+            f"(model {lp['odom_sigma_mm']:.0f} mm {lp['odom_sigma_deg']:.2f} deg) | "
             f"pgo {lp['corrected_err_mm']:6.1f} mm {lp['corrected_err_deg']:.2f} deg"
             + ("" if lp["active"] else "  (rejected by PGO)")
         )

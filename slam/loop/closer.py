@@ -36,14 +36,63 @@ from slam.geometry import invert_transform, so3_log
 from slam.loop.config import LoopClosureConfig
 from slam.loop.database import LoopDetector, LoopDetectorParams
 from slam.loop.store import KeyframeDescription, KeyframeStore, describe_keyframe
-from slam.loop.verify import LoopVerification, VerifyParams, verify_loop
+from slam.loop.verify import LoopVerification, VerifyParams, verify_loop, verify_loop_landmarks
 from slam.loop.vocabulary import Vocabulary, load_default_vocabulary
 from slam.messages import Keyframe, LoopCorrection
-from slam.posegraph import PgoOptions, PoseEdge, PoseGraph, information_from_sigmas, optimize
+from slam.posegraph import (
+    DEFAULT_KERNEL_WIDTH,
+    GNC_INLIER_CHI2,
+    PgoOptions,
+    PoseEdge,
+    PoseGraph,
+    information_from_sigmas,
+    optimize,
+)
 
 
 def _angle_rad(rotation: np.ndarray) -> float:
     return float(np.linalg.norm(so3_log(rotation)))
+
+
+def odometry_sigmas(rel: np.ndarray, dt_s: float, cfg: LoopClosureConfig) -> tuple[float, float]:
+    """(translation sigma m, rotation sigma rad) per axis of an odometry edge spanning
+    ``rel`` (prev_from_next) and ``dt_s`` seconds.
+
+    Drift modelled as a random walk in time (variances add along the chain, so a gap bridged
+    by IMU dead reckoning gets the large sigma it deserves) plus terms proportional to the
+    distance travelled and the angle turned (scale and gyro scale errors)."""
+    length = float(np.linalg.norm(rel[:3, 3]))
+    angle = _angle_rad(rel[:3, :3])
+    dt = max(float(dt_s), 0.0)
+    sigma_m = float(
+        np.sqrt(
+            cfg.odom_sigma_m**2
+            + (cfg.odom_sigma_ratio * length) ** 2
+            + cfg.odom_sigma_m_per_sqrt_s**2 * dt
+        )
+    )
+    sigma_rad = float(
+        np.sqrt(
+            cfg.odom_sigma_rad**2
+            + (cfg.odom_sigma_rad_ratio * angle) ** 2
+            + cfg.odom_sigma_rad_per_sqrt_s**2 * dt
+        )
+    )
+    return sigma_m, sigma_rad
+
+
+def robust_threshold(cfg: LoopClosureConfig) -> float:
+    """``PgoOptions.robust_threshold`` for ``cfg.robust``, widened by ``robust_sigma_scale``."""
+    scale = cfg.robust_sigma_scale
+    if cfg.robust == "gnc":
+        return GNC_INLIER_CHI2 * scale**2
+    return DEFAULT_KERNEL_WIDTH.get(cfg.robust, 0.0) * scale
+
+
+def loop_information(method: str, cfg: LoopClosureConfig) -> np.ndarray:
+    """Information (6x6, g2o order) of a loop edge verified by ``method``."""
+    scale = 1.0 if method == "landmarks" else cfg.orb_loop_sigma_factor
+    return information_from_sigmas(cfg.loop_sigma_m * scale, cfg.loop_sigma_rad * scale)
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,6 +106,7 @@ class PgoRequest:
     loop_ids: tuple[int, ...]
     fixed_id: int
     robust: str
+    robust_threshold: float = 0.0  # PgoOptions.robust_threshold (0 = the default)
 
 
 @dataclass(frozen=True, eq=False)
@@ -78,7 +128,12 @@ def run_pgo(req: PgoRequest) -> PgoOutcome:
     graph = PoseGraph.from_poses(req.world_from_node, req.odometry_edges, req.loop_edges)
     res = optimize(
         graph,
-        PgoOptions(robust=req.robust, chordal_init=False, fixed_id=req.fixed_id),  # type: ignore[arg-type]
+        PgoOptions(
+            robust=req.robust,  # type: ignore[arg-type]
+            robust_threshold=req.robust_threshold,
+            chordal_init=False,
+            fixed_id=req.fixed_id,
+        ),
     )
     return PgoOutcome(
         request_id=req.request_id,
@@ -103,6 +158,7 @@ class LoopRecord:
     inliers: int
     t_ns: int
     active: bool = True  # False once PGO's robust kernel rejected it
+    method: str = "landmarks"  # how it was verified: "landmarks" or "orb" (see _verify)
 
 
 @dataclass(frozen=True, eq=False)
@@ -324,23 +380,45 @@ class LoopCloser:
     # ------------------------------------------------------------------ verification
     def _verify(
         self, desc: KeyframeDescription, candidates: list[int]
-    ) -> tuple[int, LoopVerification | None]:
-        best: tuple[int, LoopVerification | None] = (-1, None)
-        for cand in candidates:
-            if not self.store.has(cand):
-                continue
-            c = self.store.description(cand)
-            res = verify_loop(
-                desc.query_xy_undist,
-                desc.query_desc,
-                c.landmark_desc,
-                c.landmark_points_cam,
-                self.K,
-                None,
-                self.verify_params,
-            )
-            if res is not None and (best[1] is None or res.num_inliers > best[1].num_inliers):
-                best = (cand, res)
+    ) -> tuple[int, LoopVerification | None, str]:
+        """The best-verified candidate: (id, verification, method). Landmark to landmark
+        first (accurate, see ``verify_loop_landmarks``); the query's whole-image ORB keypoints
+        against the candidate's landmarks only when no candidate passes that way."""
+        best: tuple[int, LoopVerification | None, str] = (-1, None, "")
+        for method in ("landmarks", "orb"):
+            for cand in candidates:
+                if not self.store.has(cand):
+                    continue
+                c = self.store.description(cand)
+                if method == "landmarks":
+                    if len(desc.landmark_xy_undist) != len(desc.landmark_desc) or len(
+                        c.landmark_xy_undist
+                    ) != len(c.landmark_desc):
+                        continue
+                    res = verify_loop_landmarks(
+                        desc.landmark_xy_undist,
+                        desc.landmark_desc,
+                        desc.landmark_points_cam,
+                        c.landmark_xy_undist,
+                        c.landmark_desc,
+                        c.landmark_points_cam,
+                        self.K,
+                        self.verify_params,
+                    )
+                else:
+                    res = verify_loop(
+                        desc.query_xy_undist,
+                        desc.query_desc,
+                        c.landmark_desc,
+                        c.landmark_points_cam,
+                        self.K,
+                        None,
+                        self.verify_params,
+                    )
+                if res is not None and (best[1] is None or res.num_inliers > best[1].num_inliers):
+                    best = (cand, res, method)
+            if best[1] is not None:
+                break
         return best
 
     def _verify_and_gate(
@@ -348,7 +426,7 @@ class LoopCloser:
     ) -> LoopEvent:
         q = kf.keyframe_id
         t0 = time.perf_counter()
-        match, ver = self._verify(desc, candidates)
+        match, ver, method = self._verify(desc, candidates)
         self.stats.verify_ms.append((time.perf_counter() - t0) * 1e3)
         if ver is None:
             self.stats.rejected_verification += 1
@@ -362,6 +440,7 @@ class LoopCloser:
             match_body_from_query_body=measured,
             inliers=ver.num_inliers,
             t_ns=kf.t_ns,
+            method=method,
         )
         implied_query = self.corrected_pose(match) @ measured
         current_query = self.corrected_pose(q)
@@ -497,11 +576,9 @@ class LoopCloser:
             if prev is None:
                 continue
             rel = invert_transform(self.odom[prev]) @ self.odom[k]
-            length = float(np.linalg.norm(rel[:3, 3]))
-            sigma_m = c.odom_sigma_m + c.odom_sigma_ratio * length
-            sigma_rad = c.odom_sigma_rad + 0.01 * _angle_rad(rel[:3, :3])
+            dt_s = (self.t_ns_of[k] - self.t_ns_of[prev]) * 1e-9
+            sigma_m, sigma_rad = odometry_sigmas(rel, dt_s, c)
             odo.append(PoseEdge(prev, k, rel, information_from_sigmas(sigma_m, sigma_rad)))
-        loop_info = information_from_sigmas(c.loop_sigma_m, c.loop_sigma_rad)
         loops = [r for r in active if r.query_kf_id in node_set and r.match_kf_id in node_set]
         self._request_id += 1
         self.needs_pgo = False
@@ -510,12 +587,18 @@ class LoopCloser:
             world_from_node=poses,
             odometry_edges=tuple(odo),
             loop_edges=tuple(
-                PoseEdge(r.match_kf_id, r.query_kf_id, r.match_body_from_query_body, loop_info)
+                PoseEdge(
+                    r.match_kf_id,
+                    r.query_kf_id,
+                    r.match_body_from_query_body,
+                    loop_information(r.method, c),
+                )
                 for r in loops
             ),
             loop_ids=tuple(r.loop_id for r in loops),
             fixed_id=min(nodes),
             robust=c.robust,
+            robust_threshold=robust_threshold(c),
         )
 
     def apply_pgo(self, outcome: PgoOutcome) -> LoopCorrection:

@@ -49,22 +49,39 @@ class LoopClosureConfig:
     min_keyframes_between_loops: int = 5
     """After an accepted loop, skip verification for this many keyframes (the next ones see
     the same place and add little)."""
-    odom_sigma_m: float = 0.02
-    """Odometry edge translation sigma: odom_sigma_m + odom_sigma_ratio * edge length."""
-    odom_sigma_ratio: float = 0.02
+    odom_sigma_m: float = 0.001
+    """Odometry edge translation sigma (per axis), metres: the root sum of squares of this,
+    odom_sigma_ratio * edge length and odom_sigma_m_per_sqrt_s * sqrt(edge duration)."""
+    odom_sigma_ratio: float = 0.005
     """Odometry translation sigma per metre of edge length."""
-    odom_sigma_rad: float = 0.005
-    """Odometry edge rotation sigma: odom_sigma_rad + 0.01 * edge rotation angle."""
-    loop_sigma_m: float = 0.05
-    """Loop edge translation sigma, metres."""
-    loop_sigma_rad: float = 0.02
-    """Loop edge rotation sigma, radians."""
+    odom_sigma_m_per_sqrt_s: float = 0.004
+    """Odometry translation random walk, m/sqrt(s) (measured on the synthetic hall: ~2 mm per
+    0.2 s keyframe edge, growing as the square root over 10-100 edges)."""
+    odom_sigma_rad: float = 0.0001
+    """Odometry edge rotation sigma (per axis), radians: the root sum of squares of this,
+    odom_sigma_rad_ratio * edge rotation angle and odom_sigma_rad_per_sqrt_s * sqrt(duration)."""
+    odom_sigma_rad_ratio: float = 0.01
+    """Odometry rotation sigma per radian turned."""
+    odom_sigma_rad_per_sqrt_s: float = 0.0007
+    """Odometry rotation random walk, rad/sqrt(s) (measured: ~0.02 deg per 0.2 s edge)."""
+    loop_sigma_m: float = 0.01
+    """Loop edge translation sigma (landmark-to-landmark verification), metres."""
+    loop_sigma_rad: float = 0.003
+    """Loop edge rotation sigma (landmark-to-landmark verification), radians."""
+    orb_loop_sigma_factor: float = 3.0
+    """Loops verified with whole-image ORB keypoints (when landmark to landmark fails) get
+    sigmas this many times larger (measured: ~4x the error)."""
     robust: str = "gnc"
     """Robust treatment of loop edges in PGO: gnc (graduated non-convexity, truncated least
     squares: outliers get weight 0), cauchy, huber or none."""
     debug_graph: bool = False
     """Put the final pose graph in the run's stats (``loop_closure.graph``: keyframe times,
     segments, odometry and corrected poses, loop edges) for offline analysis."""
+    robust_sigma_scale: float = 4.0
+    """The robust kernel judges loop edges as if every sigma were this many times larger
+    (GNC: inlier chi2 bound 16.8 x scale^2). The sigmas model VIO drift, and scaling them all
+    leaves the optimum unchanged; but a true loop after more drift than that (stereo VO
+    without IMU, a dead-reckoned gap) must survive, while false loops metres off still fail."""
     pgo_process: bool = True
     """Run pose-graph optimisation in a worker process (GTSAM holds the GIL)."""
     reloc_candidates: int = 3

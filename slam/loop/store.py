@@ -19,7 +19,7 @@ The points come from the same front-end state as the keyframe's VO pose, so
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -128,7 +128,8 @@ class KeyframeDescription:
     ``query_xy_undist`` (N, 2) / ``query_desc`` (N, 32): ORB keypoints of the whole image;
     ``bow`` their BoW vector. ``landmark_desc`` (M, 32) / ``landmark_points_cam`` (M, 3): ORB
     descriptors at the keyframe's landmark observations and those landmarks in cam0 (metres);
-    ``landmark_ids`` (M,) their ids (covisibility).
+    ``landmark_ids`` (M,) their ids (covisibility); ``landmark_xy_undist`` (M, 2) the front
+    end's (undistorted, sub-pixel) observations of them in this keyframe.
     """
 
     kf_id: int
@@ -140,6 +141,7 @@ class KeyframeDescription:
     landmark_desc: np.ndarray
     landmark_points_cam: np.ndarray
     landmark_ids: np.ndarray
+    landmark_xy_undist: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 @dataclass(frozen=True, eq=False)
@@ -202,6 +204,7 @@ def describe_keyframe(
         landmark_desc=desc,
         landmark_points_cam=pts_cam,
         landmark_ids=np.asarray(kf.landmark_ids, dtype=np.int64)[rows],
+        landmark_xy_undist=np.asarray(kf.pixels_left_undist, dtype=np.float64)[rows],
     )
 
 

@@ -150,3 +150,109 @@ def verify_loop(
         candidate_indices=c_idx[inl],
         rms_reprojection_px=float(np.sqrt(np.mean(err[inl] ** 2))),
     )
+
+
+def _project(points: np.ndarray, k: np.ndarray) -> np.ndarray:
+    return points[:, :2] / points[:, 2:3] * [k[0, 0], k[1, 1]] + [k[0, 2], k[1, 2]]
+
+
+def refine_symmetric(
+    candidate_cam_from_query_cam: np.ndarray,
+    candidate_points: np.ndarray,
+    query_xy_px: np.ndarray,
+    query_points: np.ndarray,
+    candidate_xy_px: np.ndarray,
+    camera_matrix: np.ndarray,
+    huber_px: float = 1.0,
+) -> np.ndarray:
+    """Refine a relative pose on matched landmarks seen by both keyframes.
+
+    Minimises (Huber) the reprojection errors in *both* directions: candidate points into the
+    query image and query points into the candidate image, so each side's depth errors (stereo:
+    they grow with depth squared) are balanced by the other's. Rows of ``query_points`` that
+    are NaN only contribute the first direction. Returns ``candidate_cam_from_query_cam``.
+    """
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    k = np.asarray(camera_matrix, dtype=np.float64)
+    pc = np.asarray(candidate_points, dtype=np.float64)
+    pq = np.asarray(query_points, dtype=np.float64)
+    uq = np.asarray(query_xy_px, dtype=np.float64)
+    uc = np.asarray(candidate_xy_px, dtype=np.float64)
+    both = np.all(np.isfinite(pq), axis=1)
+    pq, uc = pq[both], uc[both]
+    t0 = np.asarray(candidate_cam_from_query_cam, dtype=np.float64)
+    x0 = np.concatenate([Rotation.from_matrix(t0[:3, :3]).as_rotvec(), t0[:3, 3]])
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        rot = Rotation.from_rotvec(x[:3]).as_matrix()
+        t = x[3:]
+        pc_in_q = (pc - t) @ rot  # rot^T (pc - t): candidate points in the query camera
+        pq_in_c = pq @ rot.T + t
+        r1 = _project(pc_in_q, k) - uq
+        r2 = _project(pq_in_c, k) - uc
+        return np.concatenate([r1.ravel(), r2.ravel()])
+
+    sol = least_squares(residuals, x0, loss="huber", f_scale=huber_px, x_scale="jac")
+    if not sol.success or not np.all(np.isfinite(sol.x)):
+        return t0
+    return make_transform(Rotation.from_rotvec(sol.x[:3]).as_matrix(), sol.x[3:])
+
+
+def verify_loop_landmarks(
+    query_xy_px: np.ndarray,
+    query_desc: np.ndarray,
+    query_points: np.ndarray,
+    candidate_xy_px: np.ndarray,
+    candidate_desc: np.ndarray,
+    candidate_points: np.ndarray,
+    camera_matrix: np.ndarray,
+    params: VerifyParams | None = None,
+) -> LoopVerification | None:
+    """Verify a loop between two keyframes' *landmark observations* (both sides: undistorted
+    front-end pixels, ORB descriptors computed there, 3-D points in their own camera frames).
+
+    Why not the query's whole-image ORB keypoints (``verify_loop``): FAST corners sit a pixel
+    or two from the front end's Shi-Tomasi corners their descriptors match, which biased the
+    relative pose. Measured on synthetic keyframes with exact landmarks (figure8, 60 revisits):
+    7.0 mm / 0.15 deg median error with ORB keypoints, 1.6 mm / 0.04 deg landmark to landmark
+    (118 instead of 54 inliers); with stereo-like depth noise the symmetric refinement
+    (:func:`refine_symmetric`) takes 2.5 mm to 2.0 mm. Returns ``candidate_cam_from_query_cam``.
+    """
+    p = params or VerifyParams()
+    res = verify_loop(
+        query_xy_px, query_desc, candidate_desc, candidate_points, camera_matrix, None, p
+    )
+    if res is None:
+        return None
+    qi, ci = res.query_indices, res.candidate_indices
+    pose = refine_symmetric(
+        res.candidate_cam_from_query_cam,
+        np.asarray(candidate_points, dtype=np.float64)[ci],
+        np.asarray(query_xy_px, dtype=np.float64)[qi],
+        np.asarray(query_points, dtype=np.float64)[qi],
+        np.asarray(candidate_xy_px, dtype=np.float64)[ci],
+        camera_matrix,
+        huber_px=1.0,
+    )
+    # Inliers again under the refined pose (candidate points into the query image).
+    k = np.asarray(camera_matrix, dtype=np.float64)
+    pc = np.asarray(candidate_points, dtype=np.float64)[ci]
+    in_q = (pc - pose[:3, 3]) @ pose[:3, :3]
+    front = in_q[:, 2] > 0
+    err = np.full(len(ci), np.inf)
+    err[front] = np.linalg.norm(
+        _project(in_q[front], k) - np.asarray(query_xy_px)[qi][front], axis=1
+    )
+    keep = err < p.reprojection_px
+    if keep.sum() < p.min_inliers:
+        return None
+    return LoopVerification(
+        candidate_cam_from_query_cam=pose,
+        num_inliers=int(keep.sum()),
+        num_matches=res.num_matches,
+        query_indices=qi[keep],
+        candidate_indices=ci[keep],
+        rms_reprojection_px=float(np.sqrt(np.mean(err[keep] ** 2))),
+    )
