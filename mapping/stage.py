@@ -46,6 +46,8 @@ class MapperStageConfig:
     """Plane sweep at this fraction of the image size (0.5 is ~4x cheaper than full size)."""
     num_planes: int = 96
     """Plane-sweep depth hypotheses (inverse-depth sampled)."""
+    sweep_threads: int = 2
+    """Plane-sweep threads in the worker (it runs at nice 10, so it yields to tracking)."""
     max_backlog: int = 4
     """Keyframes waiting for the mapper; beyond that a keyframe is dropped (and counted)."""
     mesh_every_s: float = 5.0
@@ -89,7 +91,12 @@ def _make_mapper(calib: Calibration, cfg: MapperStageConfig) -> Any:
 
     config = MapperConfig(
         tsdf=TsdfConfig(voxel_m=cfg.voxel_m, max_depth_m=cfg.max_depth_m),
-        sweep=SweepConfig(depth_min_m=0.4, depth_max_m=8.0, num_planes=cfg.num_planes),
+        sweep=SweepConfig(
+            depth_min_m=0.4,
+            depth_max_m=8.0,
+            num_planes=cfg.num_planes,
+            threads=cfg.sweep_threads,
+        ),
         depth_scale=cfg.depth_scale,
     )
     return DenseMapper.from_calibration(calib, config)
