@@ -81,6 +81,9 @@ class PlayerConfig:
     """Frames waiting for the front end; when full in real-time playback, frames are dropped."""
     max_frames: int = 0
     """Stop after this many frames (0 = all)."""
+    reader_process: bool = True
+    """Decode the sequence in a reader process (concurrent runs): decoding is partly pure
+    Python and would hold the GIL the front end needs. False decodes in the player thread."""
     gil_switch_interval_ms: float = 1.0
     """Python's GIL switch interval during a concurrent run (Python's default is 5 ms). Every
     OpenCV call the front end makes releases the GIL; getting it back from a thread running

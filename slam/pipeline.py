@@ -20,12 +20,14 @@ import resource
 import sys
 import threading
 import time
+from collections.abc import Generator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from datasets.prefetch import prefetched_messages
 from datasets.sequence import Sequence
 from mapping.stage import MapperStage
 from slam.backend_stage import BackendStage
@@ -380,8 +382,11 @@ def run_slam(
                 consumer.put(batch)
         imu_pending.clear()
 
+    messages = (
+        prefetched_messages(seq) if threaded and cfg.player.reader_process else iter(seq.messages())
+    )
     try:
-        for msg in seq.messages():
+        for msg in messages:
             if t_first_ns is None:
                 t_first_ns = msg.t_ns
             if speed > 0:
@@ -423,6 +428,8 @@ def run_slam(
         for s in stages:
             s.abort()
     finally:
+        if isinstance(messages, Generator):
+            messages.close()  # stops the reader process when the loop ended early
         for s in stages:  # in wiring order: upstream stages finish before their consumers
             if s is not viewer:
                 s.close()
