@@ -50,3 +50,25 @@ def test_invalid_source_poses_are_ignored() -> None:
         expected = poses[0] if k == 0 else fallback
         np.testing.assert_allclose(sent, expected)
     assert ref.invalid_poses >= 2
+
+
+def test_small_drift_of_old_keyframes_is_not_resent() -> None:
+    """Front-end poses of keyframes without a back-end pose follow every drift re-anchoring:
+    once outside the recent window, their small moves are ignored (they would accumulate)."""
+    poses: dict[int, np.ndarray] = {}
+    ref = OdometryRefresher(poses.get)
+    n = REFRESH_LAST_KEYFRAMES + 5
+    for k in range(n):
+        poses[k] = make_transform(np.eye(3), [0.1 * k, 0.0, 0.0])
+        ref.refreshed()
+        ref.new_keyframe(k, poses[k])
+    original = poses[0].copy()
+    resent: set[int] = set()
+    for k in range(n, n + 10 * FULL_REFRESH_EVERY):
+        poses[0] = make_transform(np.eye(3), [0.0, 0.002, 0.0]) @ poses[0]  # 2 mm per keyframe
+        resent |= set(ref.refreshed())
+        poses[k] = make_transform(np.eye(3), [0.1 * k, 0.0, 0.0])
+        ref.new_keyframe(k, poses[k])
+    assert 0 not in resent
+    np.testing.assert_allclose(ref.sent[0], original)
+    assert ref.frame_jumps == 0

@@ -7,6 +7,12 @@ timing belong to that run alone. Per run: ATE RMSE (se3 and posyaw), RPE at 1 m 
 drift (% of distance over sub-trajectories of 10-50 % of the path, rpg style), completion (% of
 frames with a pose), initialisation time, real-time factor, front-end latency p50/p99, back-end
 update p50/p99, peak RSS.
+
+Loop closure: on suite sequences flagged ``revisits`` (they come back to places seen long
+before, after drift has accumulated), a second run of the same sequence with the same resolved
+configuration but ``loop_closure: false`` gives "the same run's ATE with loop closure off" and
+the ratio loop-closed / off. A separate run, not the online trajectory of the loop-closure run:
+that one is also changed by relocalisation against the map. ``--no-loop-baseline`` skips it.
 """
 
 from __future__ import annotations
@@ -36,6 +42,7 @@ class SuiteEntry:
     duration_s: float
     seed: int
     scale: str  # "room" or "hall": which accuracy target applies
+    revisits: bool = True  # comes back to earlier places: also run with loop closure off
 
     def file_name(self) -> str:
         return (
@@ -54,7 +61,7 @@ STANDARD_SUITE = (
 def quick_suite(duration_s: float) -> tuple[SuiteEntry, ...]:
     """The standard suite cut to ``duration_s`` per sequence (smoke tests, quick checks)."""
     return tuple(
-        SuiteEntry(e.name, e.profile, min(e.duration_s, duration_s), e.seed, e.scale)
+        SuiteEntry(e.name, e.profile, min(e.duration_s, duration_s), e.seed, e.scale, e.revisits)
         for e in STANDARD_SUITE
     )
 
@@ -111,6 +118,33 @@ def run_one(
     return stats
 
 
+def loop_off_config(run_dir: Path, dest: Path) -> Path | None:
+    """A run's resolved config.yaml with ``loop_closure: false`` written to ``dest`` (None when
+    that run had loop closure off already)."""
+    import yaml
+
+    from slam.output import write_atomic
+
+    data = yaml.safe_load((run_dir / "config.yaml").read_text()) or {}
+    if not data.get("loop_closure"):
+        return None
+    data["loop_closure"] = False
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(dest, yaml.safe_dump(data, sort_keys=False))
+    return dest
+
+
+def ate_se3(seq_path: Path, trajectory: Path) -> float | None:
+    """ATE RMSE (SE3 alignment) of one trajectory file or run folder against the sequence."""
+    from slam.evaluation.evaluate import EvalOptions, ape_of, load_pair, prepare
+
+    try:
+        ref, est = load_pair(seq_path, trajectory, EvalOptions())
+    except SlamError:
+        return None
+    return float(ape_of(prepare(ref, est, EvalOptions(align="se3"))).stats["rmse"])
+
+
 def evaluate_run(seq_path: Path, run_dir: Path) -> dict[str, Any]:
     """Accuracy of a run against the sequence's ground truth (empty when it has none)."""
     from slam.evaluation.evaluate import (
@@ -141,10 +175,7 @@ def evaluate_run(seq_path: Path, run_dir: Path) -> dict[str, Any]:
             out[f"rpe_{delta:g}m_m"] = None
     closed = run_dir / "trajectory_loop_closed.tum"
     if closed.exists():
-        ref_c, est_c = load_pair(seq_path, closed, EvalOptions())
-        out["ate_loop_closed_m"] = ape_of(prepare(ref_c, est_c, EvalOptions(align="se3"))).stats[
-            "rmse"
-        ]
+        out["ate_loop_closed_m"] = ate_se3(seq_path, closed)
     try:
         segs = segments_of(p_yaw, resolve_lengths("rpg", p_yaw.ref_poses))
         out["drift_pct"] = float(sum(s.stats["mean"] for s in segs) / len(segs))
@@ -215,6 +246,8 @@ COLUMNS = (
     ("ate_se3_m", "ATE se3 (m)", "{:.4f}"),
     ("ate_posyaw_m", "ATE posyaw (m)", "{:.4f}"),
     ("ate_loop_closed_m", "ATE loop-closed (m)", "{:.4f}"),
+    ("ate_loop_off_m", "ATE loop off (m)", "{:.4f}"),
+    ("loop_ratio", "closed/off", "{:.2f}"),
     ("rpe_1m_m", "RPE 1 m (m)", "{:.4f}"),
     ("rpe_10m_m", "RPE 10 m (m)", "{:.4f}"),
     ("drift_pct", "drift (%)", "{:.3f}"),
@@ -267,32 +300,50 @@ def run_benchmark(
     preset: str | None = None,
     extra_args: list[str] | None = None,
     compare: Path | None = None,
+    loop_baseline: bool = True,
 ) -> tuple[list[dict[str, Any]], str]:
     """Run everything, write ``results.json`` and ``results.md`` to ``out_dir``."""
     from slam.output import write_atomic
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    todo: list[tuple[str, Path]] = []
+    todo: list[tuple[str, Path, bool]] = []
     for entry in suite or ():
-        todo.append((entry.name, ensure_sequence(entry, cache_dir)))
+        todo.append((entry.name, ensure_sequence(entry, cache_dir), entry.revisits))
     for path in sequences:
         if not path.exists():
             raise SlamError(f"{path}: no such sequence")
-        todo.append((path.stem if path.is_file() else path.name, path))
+        todo.append((path.stem if path.is_file() else path.name, path, False))
     rows = []
-    for name, path in todo:
+    for name, path, revisits in todo:
         run_dir = out_dir / "runs" / name
         print(f"running {name} ...", flush=True)
         stats = run_one(path, run_dir, preset, extra_args or [])
         acc = evaluate_run(path, run_dir)
         acc["false_loops"] = false_loops(path, stats)
+        if loop_baseline and revisits:
+            off_cfg = loop_off_config(run_dir, out_dir / "runs" / f"{name}-loop-off.yaml")
+            if off_cfg is not None:
+                print(f"running {name} with loop closure off ...", flush=True)
+                off_dir = out_dir / "runs" / f"{name}-loop-off"
+                off_args = [a for a in (extra_args or [])]
+                run_one(path, off_dir, str(off_cfg), off_args)
+                acc["ate_loop_off_m"] = ate_se3(path, off_dir)
+                closed_m, off_m = acc.get("ate_loop_closed_m"), acc["ate_loop_off_m"]
+                if closed_m is not None and off_m:
+                    acc["loop_ratio"] = closed_m / off_m
         row = summarise(name, stats, acc)
         write_atomic(run_dir / "bench.json", json.dumps(row, indent=2) + "\n")
         rows.append(row)
         print(
             f"  ATE se3 {_fmt(row.get('ate_se3_m'), '{:.4f}')} m, "
             f"RTF {_fmt(row['real_time_factor'], '{:.2f}')}, "
-            f"FE p99 {_fmt(row['frontend_p99_ms'], '{:.1f}')} ms",
+            f"FE p99 {_fmt(row['frontend_p99_ms'], '{:.1f}')} ms"
+            + (
+                f", loop-closed / off {_fmt(row.get('ate_loop_closed_m'), '{:.4f}')} / "
+                f"{_fmt(row.get('ate_loop_off_m'), '{:.4f}')} m"
+                if row.get("ate_loop_off_m") is not None
+                else ""
+            ),
             flush=True,
         )
     old = None
@@ -310,6 +361,7 @@ def run_benchmark(
         "suite": [asdict(e) for e in (suite or ())],
         "preset": preset,
         "extra_args": extra_args or [],
+        "loop_baseline": loop_baseline,
         "date": time.strftime("%Y-%m-%d %H:%M:%S"),
         "runs": rows,
     }

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from slam.calibration import Calibration
+from slam.geometry import invert_transform
 from slam.loop.closer import LoopCloser, LoopEvent, PgoOutcome, run_pgo
 from slam.loop.config import LoopClosureConfig
 from slam.loop.relocaliser import Relocaliser
@@ -35,25 +36,36 @@ from slam.stage import Latest, Stage, StageError
 log = logging.getLogger(__name__)
 
 REFRESH_LAST_KEYFRAMES = 30  # odometry poses re-read per new keyframe (the back end's window)
-FULL_REFRESH_EVERY = 10  # ... and every keyframe's, every this many keyframes (see below)
+FULL_REFRESH_EVERY = 10  # ... and the older ones', every this many keyframes (see below)
+FRAME_JUMP_M = 0.1  # an old keyframe moving more than this between sweeps: a change of frame
+FRAME_JUMP_DEG = 3.0
 
 
 class OdometryRefresher:
     """Which keyframes' odometry poses changed since they were last handed to the closer.
 
     Every keyframe, the last ``REFRESH_LAST_KEYFRAMES`` are re-read (the back end's window keeps
-    refining them). Every ``FULL_REFRESH_EVERY`` keyframes, *all* are re-read and the changed
-    ones resent: measured on the hall sequence at ``--speed max``, the back end's first
-    (gravity-aligning) estimate arrived ~40 keyframes late, after the first 10 keyframes had
-    left the recent window, so they stayed in the pre-initialisation VO frame (a 94 deg wrong
-    odometry edge, and loops to the start rejected by the robust kernel).
+    refining them). Every ``FULL_REFRESH_EVERY`` keyframes, the older ones are re-read too, but
+    resent only when they *jumped* since the previous sweep by more than a change of frame
+    threshold (``FRAME_JUMP_M`` / ``FRAME_JUMP_DEG``). Why both rules, measured:
+
+    * at ``--speed max`` on the hall, the back end's first (gravity-aligning) estimate arrived
+      ~40 keyframes late, after the first 10 keyframes had left the recent window: they stayed
+      in the pre-initialisation VO frame (a 94 deg wrong odometry edge; loops to the start
+      rejected by the robust kernel). The sweep catches such a change of frame;
+    * keyframes without a back-end pose (before initialisation) come from the front end's
+      belief, which every estimate re-anchors by the current drift correction: resending all
+      their small changes dragged keyframe 1 of room-aggressive 115 mm / 2.2 deg away from
+      keyframe 2 (corrupting every loop to it). Small changes of old keyframes are ignored.
     """
 
     def __init__(self, odometry_pose: Callable[[int], np.ndarray | None]):
         self._source = odometry_pose
         self.sent: dict[int, np.ndarray] = {}
+        self._seen: dict[int, np.ndarray] = {}  # old keyframes' source poses at the last sweep
         self._order: list[int] = []
         self.invalid_poses = 0
+        self.frame_jumps = 0
 
     def odometry_pose(self, kid: int) -> np.ndarray | None:
         """The source's pose when it is a rigid transform, else None (counted): measured, a
@@ -74,17 +86,31 @@ class OdometryRefresher:
 
     def refreshed(self) -> dict[int, np.ndarray]:
         """Changed poses to resend before the next keyframe (also recorded as sent)."""
-        full = len(self._order) % FULL_REFRESH_EVERY == 0
-        ids = self._order if full else self._order[-REFRESH_LAST_KEYFRAMES:]
         out: dict[int, np.ndarray] = {}
-        for kid in ids:
+        recent = self._order[-REFRESH_LAST_KEYFRAMES:]
+        for kid in recent:
             pose = self.odometry_pose(kid)
             if pose is None:
                 continue
+            self._seen[kid] = pose
             old = self.sent.get(kid)
             if old is None or not np.array_equal(old, pose):
-                out[kid] = np.array(pose, dtype=float)
-                self.sent[kid] = out[kid]
+                out[kid] = self.sent[kid] = np.array(pose, dtype=float)
+        if len(self._order) % FULL_REFRESH_EVERY == 0:
+            for kid in self._order[: max(len(self._order) - len(recent), 0)]:
+                pose = self.odometry_pose(kid)
+                if pose is None:
+                    continue
+                before = self._seen.get(kid, self.sent[kid])
+                if np.array_equal(before, pose):  # the usual case: a frozen back-end pose
+                    continue
+                self._seen[kid] = pose
+                jump = invert_transform(before) @ pose
+                cos = np.clip((np.trace(jump[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+                angle_deg = float(np.degrees(np.arccos(cos)))
+                if np.linalg.norm(jump[:3, 3]) > FRAME_JUMP_M or angle_deg > FRAME_JUMP_DEG:
+                    out[kid] = self.sent[kid] = np.array(pose, dtype=float)
+                    self.frame_jumps += 1
         return out
 
     def new_keyframe(self, kid: int, fallback: np.ndarray) -> np.ndarray:
@@ -249,6 +275,7 @@ class LoopClosureStage(Stage):
             ][:50]
             out["relocalisation"] = self.relocaliser.stats()
             out["invalid_odometry_poses"] = self.refresher.invalid_poses
+            out["odometry_frame_jumps"] = self.refresher.frame_jumps
             if self.cfg.debug_graph:
                 out["graph"] = self.closer.graph_dump()
         return out

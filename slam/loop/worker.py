@@ -202,4 +202,5 @@ class LoopClosureWorkerStage(Stage):
         out: dict[str, Any] = {} if self._final is None else dict(self._final.stats)
         out["relocalisation"] = self.relocaliser.stats()
         out["invalid_odometry_poses"] = self.refresher.invalid_poses
+        out["odometry_frame_jumps"] = self.refresher.frame_jumps
         return out
