@@ -281,9 +281,11 @@ class _StripSweep:
     def _aggregate(self, out: np.ndarray) -> None:
         """Mean of the best k view scores per pixel (robust to occlusion in the other views)."""
         scores, k, n = self.view_scores, self.k, len(self.view_scores)
-        if k == 1:
+        if n == 1:
             np.copyto(out, scores[0])
-            for s in scores[1:]:
+        elif k == 1:
+            cv2.max(scores[0], scores[1], dst=out)
+            for s in scores[2:]:
                 cv2.max(out, s, dst=out)
         elif k >= n or k == n - 1:
             np.copyto(out, scores[0])
@@ -359,8 +361,15 @@ def plane_sweep(
     k = cfg.best_k or (len(sources) + 1) // 2
     depths = inverse_depth_planes(cfg)
     n_planes = len(depths)
+    # H(Z) = K_s R K_ref^-1 + (K_s t n^T K_ref^-1) / Z for every view and plane.
+    k_ref_inv = np.linalg.inv(K_ref)
+    n_row = np.array([[0.0, 0.0, 1.0]])
     homs = np.array(
-        [[plane_homography(K_ref, v.K, v.src_from_ref, float(d)) for d in depths] for v in sources]
+        [
+            (v.K @ v.src_from_ref[:3, :3] @ k_ref_inv)[None]
+            + (v.K @ v.src_from_ref[:3, 3:4] @ n_row @ k_ref_inv)[None] / depths[:, None, None]
+            for v in sources
+        ]
     )
 
     best = np.empty((h, w), np.float32)

@@ -71,8 +71,8 @@ def test_sweep_threads_give_identical_result(synthetic_views):
     np.testing.assert_array_equal(a.depth_m, b.depth_m)
 
 
-def _naive_zncc_volume(img, sources, cfg):
-    """Full-image ZNCC per plane and view (the textbook formula), aggregated with k = 1."""
+def _naive_zncc_volume(img, sources, cfg, k=1):
+    """Full-image ZNCC per plane and view (the textbook formula), mean of the best k views."""
     from mapping.planesweep import inverse_depth_planes
 
     def box(x):  # a direct convolution: cv2.blur's running sums would smear NaN along rows
@@ -99,17 +99,20 @@ def _naive_zncc_volume(img, sources, cfg):
             var_s = np.maximum(box(warped * warped) - mu_s * mu_s, 1e-2)
             zncc = (box(ref * warped) - mu_r * mu_s) / (np.maximum(sd_r, 1e-3) * np.sqrt(var_s))
             per_view.append(np.nan_to_num(zncc, nan=-1.0))
-        volume.append(np.max(per_view, axis=0))
+        volume.append(np.sort(per_view, axis=0)[-k:].mean(axis=0))
     return np.array(volume)
 
 
-def test_strip_sweep_matches_full_image_formula(synthetic_views):
-    """The strip-by-strip sweep (halo rows, reflected image borders, stacked box filter) gives
-    the best score and plane of the plain full-image computation."""
-    img, _, sources = synthetic_views
-    cfg = SweepConfig(depth_min_m=0.5, depth_max_m=6.0, num_planes=16)
+@pytest.mark.parametrize(("n_views", "best_k"), [(2, 1), (3, 2), (3, 3), (4, 2)])
+def test_strip_sweep_matches_full_image_formula(synthetic_views, n_views, best_k):
+    """The strip-by-strip sweep (halo rows, reflected image borders, stacked box filter, each
+    best-k aggregation path) gives the best score and plane of the plain full-image formula."""
+    img, _, two = synthetic_views
+    shifted = [SourceView(np.roll(v.image, 1, axis=1), v.K, v.src_from_ref) for v in two]
+    sources = (two + shifted)[:n_views]  # extra views: the same, one pixel off (other scores)
+    cfg = SweepConfig(depth_min_m=0.5, depth_max_m=6.0, num_planes=16, best_k=best_k)
     res = plane_sweep(img, K, sources, cfg)
-    volume = _naive_zncc_volume(img, sources, cfg)
+    volume = _naive_zncc_volume(img, sources, cfg, best_k)
     # Where a warped window touches the source's border, whether the source coordinate lands a
     # hair inside or outside (NaN, score -1) depends on float rounding: here the stereo partner's
     # top row maps to source row -1e-4 or so; such pixels (rows 0-3 here) are left out.
