@@ -14,6 +14,7 @@ an error while reading is re-raised here with its own type and message.
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
 import queue
 import time
 from collections.abc import Iterator
@@ -23,10 +24,18 @@ from datasets.sequence import Sequence
 from slam.messages import ImuSample, StereoFrame
 
 _END = "end"
+READER_NICE = 5
 
 
 def _reader(seq: Sequence, out: Any, stop: Any) -> None:
-    """The reader process: bundles of messages, then ``(_END, warnings)`` or the exception."""
+    """The reader process: bundles of messages, then ``(_END, warnings)`` or the exception.
+
+    It runs niced: it only has to stay a few frames ahead, the front end must answer each one.
+    """
+    try:
+        os.nice(READER_NICE)
+    except OSError:
+        pass
     try:
         bundle: list[ImuSample | StereoFrame] = []
         for msg in seq.messages():
