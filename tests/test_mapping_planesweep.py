@@ -237,10 +237,11 @@ def _pnp_src_from_ref(ref_rgb, ref_depth, src_rgb, k):
 
 
 SEVEN_SCENES_COLOR_K = np.array([[525.0, 0.0, 320.0], [0.0, 525.0, 240.0], [0.0, 0.0, 1.0]])
-"""7-Scenes colour camera model: the Kinect v1 colour focal length (525 px) at the depth camera's
-centre and principal point. The dataset documents neither a colour intrinsic nor a depth-to-colour
-extrinsic: its PROVENANCE says colour and depth are not registered and the poses (camera-to-world,
-from KinectFusion tracking) are those of the depth camera."""
+"""7-Scenes colour camera model: the usual Kinect v1 colour focal length (525 px; not in the
+data) at the depth camera's centre and principal point. The data documents neither a colour
+intrinsic nor a depth-to-colour extrinsic: PROVENANCE.md gives fx = fy = 585 (the depth camera's,
+used by the demo for both), says colour and depth are not registered, and that the poses come
+from KinectFusion tracking, which tracks the depth camera."""
 
 
 def _seven_scenes_sweep(folder, ref_i, src_from_ref_of):
