@@ -59,3 +59,27 @@ def test_thousands_of_estimates_leave_keyframe_poses_rigid():
         fe._apply_estimate()
     worst = max(_orthonormality_error(p) for p in fe.kf_poses.values())
     assert np.isfinite(worst) and worst < 1e-6
+
+
+def test_an_estimate_that_is_not_a_rigid_pose_is_ignored():
+    fe = FrontEnd(euroc_like_calibration(), FrontendConfig(), None, lambda: estimate)
+    fe.mapped = True
+    fe.kf_poses[0] = np.eye(4)
+    fe.world_from_body = np.eye(4)
+    bad = np.eye(4)
+    bad[:3, :3] *= 12.0
+    estimate = Estimate(
+        t_ns=5,
+        keyframe_id=0,
+        initialized=True,
+        world_from_body=bad,
+        velocity_world_m_s=np.zeros(3),
+        bias_gyro_rad_s=np.zeros(3),
+        bias_accel_m_s2=np.zeros(3),
+        keyframe_poses={},
+        landmark_ids=np.zeros(0, np.int64),
+        landmark_positions_world=np.zeros((0, 3)),
+    )
+    fe._apply_estimate()
+    np.testing.assert_array_equal(fe.world_from_body, np.eye(4))
+    assert any("not a rigid pose" in text for _, text in fe.stats.state_log)

@@ -115,8 +115,13 @@ class FrontEnd:
         fe_pose = self.kf_poses.get(est.keyframe_id)
         if fe_pose is None or not self.mapped:
             return
-        if not (np.isfinite(est.world_from_body).all() and np.isfinite(fe_pose).all()):
-            self.stats.state_log.append((est.t_ns, "back-end estimate ignored: not finite"))
+        rot = est.world_from_body[:3, :3]
+        if not (
+            np.isfinite(est.world_from_body).all()
+            and np.isfinite(fe_pose).all()
+            and np.abs(rot.T @ rot - np.eye(3)).max() < 1e-3
+        ):
+            self.stats.state_log.append((est.t_ns, "back-end estimate ignored: not a rigid pose"))
             return
         correction = nearest_rigid(est.world_from_body @ invert_transform(fe_pose))
         self.stats.estimate_corrections += 1
