@@ -45,6 +45,8 @@ class FrontendConfig:
     stereo_known_point_levels: int = 1
     """KLT pyramid levels above the base image when stereo-matching a tracked landmark (its
     projection into the right image is the start)."""
+    stereo_known_max_shift_px: float = 3.0
+    """A tracked landmark's right-image match must lie this close to its projection."""
     min_depth_m: float = 0.2
     """Closest accepted stereo depth, metres."""
     max_depth_m: float = 25.0

@@ -56,3 +56,29 @@ def test_stereo_depths_are_plausible(shared_data):
     # the Vicon room: everything seen is between ~0.5 m and ~8 m away
     assert 0.5 < np.median(z) < 8.0
     assert (z > cfg.min_depth_m).all() and (z < cfg.max_depth_m).all()
+
+
+def test_stereo_from_known_points_finds_the_same_matches(shared_data):
+    """Real EuRoC pair: matching from the features' known 3-D points (one pyramid level, no
+    backward track) lands on the full search's matches, and keeps nearly all of them; a point
+    that predicts the wrong place is not matched there."""
+    seq = _open(shared_data)
+    cfg = FrontendConfig()
+    f = seq.frame(0)
+    px = detect_features(f.left, np.zeros((0, 2)), cfg)
+    matcher = StereoMatcher(seq.calibration, cfg)
+    full = matcher.match(f.left, f.right, px)
+    known = np.where(full.ok[:, None], full.points_cam0_m, np.nan)
+    again = matcher.match(f.left, f.right, px, known)
+    both = full.ok & again.ok
+    assert both.sum() >= 0.95 * full.ok.sum()
+    err = np.linalg.norm(again.pixels_right[both] - full.pixels_right[both], axis=1)
+    assert np.median(err) < 0.05 and np.percentile(err, 95) < 0.3
+    wrong = known.copy()
+    wrong[:, 2] *= 3.0  # three times too far: the prediction is off by tens of pixels
+    shifted = matcher.match(f.left, f.right, px, wrong)
+    moved = full.ok & (np.linalg.norm(wrong[:, :2], axis=1) > 0)
+    assert (
+        shifted.ok[moved]
+        & (np.linalg.norm(shifted.pixels_right[moved] - full.pixels_right[moved], axis=1) < 1.0)
+    ).mean() < 0.2

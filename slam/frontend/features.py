@@ -82,11 +82,13 @@ def track_klt(
     cfg: FrontendConfig,
     guess_to: np.ndarray | None = None,
     levels: int | None = None,
+    backward_check: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Track points between two pyramids with a forward-backward consistency check.
 
     ``levels``: pyramid levels above the base image (default ``cfg.klt_pyramid_levels``); fewer
-    will do when ``guess_to`` is already within a few pixels.
+    will do when ``guess_to`` is already within a few pixels. ``backward_check=False`` skips
+    the backward track (for callers that check the result another way).
     Returns ``(pts_to (N, 2) float32, ok (N,) bool)``.
     """
     n = len(pts_from)
@@ -112,6 +114,11 @@ def track_klt(
         criteria=criteria,
         flags=flags,
     )
+    h, w = pyr_to.shape[:2]
+    if not backward_check:
+        p1 = p1.reshape(-1, 2)
+        inside = (p1[:, 0] >= 0) & (p1[:, 0] < w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] < h - 1)
+        return p1.astype(np.float32), (st1.ravel() == 1) & inside
     p0_back, st2, _ = cv2.calcOpticalFlowPyrLK(
         pyr_to,
         pyr_from,
@@ -124,7 +131,6 @@ def track_klt(
     )
     p1 = p1.reshape(-1, 2)
     fb = np.linalg.norm(p0_back.reshape(-1, 2) - p0.reshape(-1, 2), axis=1)
-    h, w = pyr_to.shape[:2]
     inside = (p1[:, 0] >= 0) & (p1[:, 0] < w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] < h - 1)
     ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < cfg.klt_fb_max_error_px) & inside
     return p1.astype(np.float32), ok

@@ -56,7 +56,8 @@ class StereoMatcher:
         ``points_cam0_m`` (N, 3, NaN rows where unknown): a known 3-D point per feature (a
         tracked landmark). Its projection is the KLT start in the right image, close enough for
         ``stereo_known_point_levels`` pyramid levels instead of the full pyramid that the
-        nominal-depth guess needs (about half the keyframe's stereo time on the room sequences).
+        nominal-depth guess needs, and a match must stay within ``stereo_known_max_shift_px`` of
+        it instead of passing a backward track (together about half the stereo time).
         """
         n = len(pixels_left)
         if n == 0:
@@ -74,19 +75,23 @@ class StereoMatcher:
                 guess[known] = self.cam1.project(pts_c1[known])
         px_right = np.zeros((n, 2), np.float32)
         ok = np.zeros(n, dtype=bool)
-        for subset, levels in (
-            (known, self.cfg.stereo_known_point_levels),
-            (~known, self.cfg.klt_pyramid_levels),
-        ):
-            if subset.any():
-                px_right[subset], ok[subset] = track_klt(
-                    pyr_left,
-                    pyr_right,
-                    pixels_left[subset],
-                    self.cfg,
-                    guess_to=guess[subset],
-                    levels=levels,
-                )
+        if known.any():
+            # The prediction replaces the backward check: a match must stay near it.
+            px_right[known], ok[known] = track_klt(
+                pyr_left,
+                pyr_right,
+                pixels_left[known],
+                self.cfg,
+                guess_to=guess[known],
+                levels=self.cfg.stereo_known_point_levels,
+                backward_check=False,
+            )
+            shift = np.linalg.norm(px_right[known] - guess[known], axis=1)
+            ok[known] &= shift < self.cfg.stereo_known_max_shift_px
+        if (~known).any():
+            px_right[~known], ok[~known] = track_klt(
+                pyr_left, pyr_right, pixels_left[~known], self.cfg, guess_to=guess[~known]
+            )
         norm1 = self.cam1.undistort_points(px_right)
         rays1 = np.hstack([norm1, np.ones((n, 1))])
         # Epipolar distance of the right ray from the line E x0, in right-image pixels.
