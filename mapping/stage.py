@@ -27,7 +27,7 @@ import numpy as np
 from slam.calibration import Calibration
 from slam.messages import EndOfStream, Keyframe, MapperReport, MeshSnapshot
 from slam.stage import Stage, StageError, latency_summary
-from slam.worker import READY, WorkerProcess, lower_priority
+from slam.worker import READY, WorkerProcess, lower_priority, receive
 
 log = logging.getLogger(__name__)
 
@@ -146,7 +146,7 @@ def _worker(calib: Calibration, cfg: MapperStageConfig, inbox: Any, outbox: Any)
     outbox.put(READY)
     last_mesh = time.perf_counter()
     while True:
-        msg = inbox.get()
+        msg = receive(inbox)
         try:
             if isinstance(msg, _MapKeyframe):
                 outbox.put(_add(mapper, msg))

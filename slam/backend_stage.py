@@ -10,6 +10,7 @@ the estimator directly (deterministic).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -22,9 +23,11 @@ from slam.backend.config import BackendConfig
 from slam.calibration import Calibration
 from slam.messages import BackendOutput, EndOfStream, Estimate, ImuBatch, ImuSample, Keyframe
 from slam.stage import Latest, Stage, StageError, latency_summary
-from slam.worker import READY, WorkerProcess, lower_priority
+from slam.worker import READY, WorkerProcess, lower_priority, receive
 
 log = logging.getLogger(__name__)
+
+_NO_IMAGE = np.zeros((0, 0), np.uint8)  # a keyframe sent to the worker carries no images
 
 
 class _Estimator:
@@ -73,7 +76,7 @@ def _worker(calib: Calibration, cfg: BackendConfig, inbox: Any, outbox: Any) -> 
     estimator = _Estimator(calib, cfg)
     outbox.put(READY)
     while True:
-        msg = inbox.get()
+        msg = receive(inbox)
         if isinstance(msg, EndOfStream):
             break
         if isinstance(msg, ImuBatch):
@@ -169,7 +172,10 @@ class BackendStage(Stage):
         elif isinstance(msg, Keyframe):
             if self.use_process:
                 self._flush_imu()
-                self._worker.put(msg)
+                # The estimator uses the observations only: not pickling and piping the two
+                # images (~720 KB, written in 64 KB pieces that each take the GIL again) keeps
+                # that work off the front end's GIL.
+                self._worker.put(dataclasses.replace(msg, image_left=_NO_IMAGE, image_right=None))
             else:
                 self._publish(self._estimator.add_keyframe(msg))
 

@@ -33,6 +33,21 @@ def lower_priority(increment: int) -> None:
         pass
 
 
+def receive(inbox: Any, poll_s: float = 1.0) -> Any:
+    """The next message of a worker's inbox; ends the worker if the main process has died.
+
+    A killed main process (SIGKILL, OOM) cannot tell its workers to stop, and a worker blocked
+    on its inbox would wait forever: it notices that it has been re-parented instead.
+    """
+    parent = os.getppid()
+    while True:
+        try:
+            return inbox.get(timeout=poll_s)
+        except queue.Empty:
+            if os.getppid() != parent:
+                raise SystemExit(0) from None
+
+
 class WorkerProcess:
     """One spawned worker and the thread that receives its output."""
 

@@ -35,7 +35,14 @@ def _same(a: list, b: list) -> None:  # type: ignore[type-arg]
             assert np.array_equal(x.accel_m_s2, y.accel_m_s2)
 
 
-def test_same_messages_in_the_same_order(path: Path) -> None:
+@pytest.mark.parametrize("slots", ["shared memory", "inline"])
+def test_same_messages_in_the_same_order(
+    path: Path, slots: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import datasets.prefetch
+
+    if slots == "inline":  # slots too small for any frame: every image travels in the queue
+        monkeypatch.setattr(datasets.prefetch, "_slot_bytes", lambda seq: 16)
     direct = list(McapSequence(path).messages())
     assert sum(isinstance(m, StereoFrame) for m in direct) == 30
     _same(list(prefetched_messages(McapSequence(path), frames_ahead=3)), direct)

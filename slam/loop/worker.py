@@ -28,7 +28,9 @@ from slam.loop.store import KeyframeDescription, KeyframeStore
 from slam.loop.vocabulary import load_default_vocabulary
 from slam.messages import EndOfStream, Keyframe, LoopCorrection
 from slam.stage import Latest, Stage, StageError
-from slam.worker import READY, WorkerProcess, lower_priority
+from slam.worker import READY, WorkerProcess, lower_priority, receive
+
+LOOP_WORKER_NICE = 10
 
 log = logging.getLogger(__name__)
 
@@ -59,11 +61,11 @@ class _LoopFinal:
 def _worker(calib: Calibration, cfg: LoopClosureConfig, inbox: Any, outbox: Any) -> None:
     from slam.loop.closer import LoopCloser
 
-    lower_priority(5)  # background work: the front end's process comes first
+    lower_priority(LOOP_WORKER_NICE)  # background work: the front end and back end come first
     closer = LoopCloser(calib, cfg, None, inline_pgo=True)
     outbox.put(READY)
     while True:
-        msg = inbox.get()
+        msg = receive(inbox)
         if isinstance(msg, EndOfStream):
             break
         try:

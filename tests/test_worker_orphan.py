@@ -1,0 +1,43 @@
+"""A worker whose main process is killed ends by itself instead of waiting forever."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+SCRIPT = """
+import os, signal
+from slam.worker import READY, WorkerProcess, receive
+
+def target(inbox, outbox):
+    outbox.put(READY)
+    while True:
+        receive(inbox, poll_s=0.2)
+
+if __name__ == "__main__":
+    worker = WorkerProcess("orphan-test", target, (), lambda item: False, lambda: None)
+    print(worker.proc.pid, flush=True)
+    os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+
+def _running(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/status").read_text()
+    except FileNotFoundError:
+        return False
+    return "State:\tZ" not in state  # a zombie has exited (nobody reaped it yet)
+
+
+def test_worker_ends_when_the_main_process_is_killed(tmp_path: Path) -> None:
+    script = tmp_path / "main.py"
+    script.write_text(SCRIPT)
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == -9
+    pid = int(proc.stdout.split()[0])
+    deadline = time.monotonic() + 10.0
+    while _running(pid) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not _running(pid), f"worker {pid} outlived its killed main process"
