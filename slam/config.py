@@ -42,7 +42,7 @@ class FrontendConfig:
     """Forward-backward check: max distance between a point and its back-tracked position."""
     stereo_max_epipolar_px: float = 1.5
     """Max distance from the epipolar line for a left-right match, pixels."""
-    stereo_known_point_levels: int = 1
+    stereo_known_point_levels: int = 0
     """KLT pyramid levels above the base image when stereo-matching a tracked landmark (its
     projection into the right image is the start)."""
     stereo_known_max_shift_px: float = 3.0
