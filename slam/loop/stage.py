@@ -97,14 +97,25 @@ class OdometryRefresher:
             if old is None or not np.array_equal(old, pose):
                 out[kid] = self.sent[kid] = np.array(pose, dtype=float)
         if len(self._order) % FULL_REFRESH_EVERY == 0:
-            for kid in self._order[: max(len(self._order) - len(recent), 0)]:
-                pose = self.odometry_pose(kid)
-                if pose is None:
-                    continue
-                before = self._seen.get(kid, self.sent[kid])
-                if np.array_equal(before, pose):  # the usual case: a frozen back-end pose
-                    continue
-                self._seen[kid] = pose
+            # Vectorised over the old keyframes: this runs in the main process, and a Python
+            # loop over hundreds of poses held the GIL for milliseconds at a time.
+            old_ids = self._order[: max(len(self._order) - len(recent), 0)]
+            found = [(kid, p) for kid in old_ids if (p := self._source(kid)) is not None]
+            if not found:
+                return out
+            ids = [kid for kid, _ in found]
+            poses = np.array([p for _, p in found], dtype=float).reshape(-1, 4, 4)
+            before_all = np.array([self._seen.get(k, self.sent[k]) for k in ids]).reshape(-1, 4, 4)
+            rot = poses[:, :3, :3]
+            gram_err = np.abs(np.einsum("nji,njk->nik", rot, rot) - np.eye(3)).max(axis=(1, 2))
+            with np.errstate(invalid="ignore"):
+                valid = np.isfinite(poses).all(axis=(1, 2)) & (gram_err <= 1e-6)
+                valid &= np.linalg.det(np.where(np.isfinite(rot), rot, 0.0)) > 0
+            self.invalid_poses += int((~valid).sum())
+            changed = valid & ~(poses == before_all).all(axis=(1, 2))  # usually: frozen poses
+            for i in np.flatnonzero(changed).tolist():
+                kid, pose, before = ids[i], poses[i], before_all[i]
+                self._seen[kid] = pose.copy()
                 jump = invert_transform(before) @ pose
                 cos = np.clip((np.trace(jump[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
                 angle_deg = float(np.degrees(np.arccos(cos)))
