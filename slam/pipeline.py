@@ -389,13 +389,13 @@ def run_slam(
         for msg in messages:
             if t_first_ns is None:
                 t_first_ns = msg.t_ns
-            if speed > 0:
-                ahead = (msg.t_ns - t_first_ns) * 1e-9 / speed - (time.perf_counter() - t_wall0)
-                if ahead > 0:
-                    time.sleep(ahead)
             if isinstance(msg, ImuSample):
                 imu_pending.append(msg)  # handed on with the next frame, in one message
                 continue
+            if speed > 0:  # paced per frame (IMU samples wait for their frame anyway)
+                ahead = (msg.t_ns - t_first_ns) * 1e-9 / speed - (time.perf_counter() - t_wall0)
+                if ahead > 0:
+                    time.sleep(ahead)
             flush_imu()
             if cfg.player.max_frames and frames_in >= cfg.player.max_frames:
                 break
