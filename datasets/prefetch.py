@@ -10,7 +10,7 @@ them out (one memcpy per image). Sending them through the queue was measured to 
 than decoding in place: the pipe delivers a 720 KB pickle in 64 KB reads, each taking the GIL
 again, and unpickling copies once more. The queue carries a small message per frame: the
 frame's time, index, slot and image shapes, and the IMU samples since the previous frame as
-three arrays. A frame whose images do not fit a slot travels inline.
+one ``ImuBatch``. A frame whose images do not fit a slot travels inline.
 
 The messages, their order and the sequence's warnings are exactly those of ``seq.messages()``;
 an error while reading is re-raised here with its own type and message.
@@ -19,7 +19,6 @@ an error while reading is re-raised here with its own type and message.
 from __future__ import annotations
 
 import multiprocessing as mp
-import os
 import queue
 import time
 from collections.abc import Iterator
@@ -30,7 +29,8 @@ from typing import Any
 import numpy as np
 
 from datasets.sequence import Sequence
-from slam.messages import ImuSample, StereoFrame
+from slam.messages import ImuBatch, ImuSample, StereoFrame
+from slam.worker import lower_priority, main_process_gone
 
 _END = "end"
 READER_NICE = 5
@@ -40,9 +40,7 @@ READER_NICE = 5
 class _Bundle:
     """One frame and the IMU samples before it (or only samples, after the last frame)."""
 
-    imu_t_ns: np.ndarray  # (N,) int64
-    imu_gyro: np.ndarray  # (N, 3)
-    imu_accel: np.ndarray  # (N, 3)
+    imu: ImuBatch
     t_ns: int | None = None  # None: no frame in this bundle
     index: int = -1
     slot: int = -1  # -1: the images are inline
@@ -58,23 +56,21 @@ def _slot_bytes(seq: Sequence) -> int:
 def _pack(
     imu: list[ImuSample], frame: StereoFrame | None, ring: Any, slot: int, slot_bytes: int
 ) -> _Bundle:
-    t = np.array([s.t_ns for s in imu], dtype=np.int64)
-    gyro = np.array([s.gyro_rad_s for s in imu], dtype=float).reshape(-1, 3)
-    accel = np.array([s.accel_m_s2 for s in imu], dtype=float).reshape(-1, 3)
+    batch = ImuBatch.from_samples(imu)
     if frame is None:
-        return _Bundle(t, gyro, accel)
+        return _Bundle(batch)
     images = [im for im in (frame.left, frame.right) if im is not None]
     fits = sum(im.nbytes for im in images) <= slot_bytes and all(
         im.dtype == np.uint8 for im in images
     )
     if slot < 0 or not fits:
-        return _Bundle(t, gyro, accel, frame.t_ns, frame.index, -1, (), (frame.left, frame.right))
+        return _Bundle(batch, frame.t_ns, frame.index, -1, (), (frame.left, frame.right))
     offset = slot * slot_bytes
     for im in images:
         np.ndarray(im.shape, np.uint8, ring.buf, offset)[...] = im
         offset += im.nbytes
     shapes = tuple(im.shape for im in images)
-    return _Bundle(t, gyro, accel, frame.t_ns, frame.index, slot, shapes)
+    return _Bundle(batch, frame.t_ns, frame.index, slot, shapes)
 
 
 def _reader(seq: Sequence, out: Any, free: Any, ring_name: str, slots: int, stop: Any) -> None:
@@ -83,23 +79,19 @@ def _reader(seq: Sequence, out: Any, free: Any, ring_name: str, slots: int, stop
     It runs niced: it only has to stay a few frames ahead, the front end must answer each one.
     Slots are used round robin; ``free`` counts the slots the consumer has emptied.
     """
-    try:
-        os.nice(READER_NICE)
-    except OSError:
-        pass
-    parent = os.getppid()
+    lower_priority(READER_NICE)
 
     def wait_for_parent(step: Any) -> Any:
         while True:  # a killed main process never reads again: notice it and end
             try:
                 return step()
             except queue.Full:
-                if os.getppid() != parent:
+                if main_process_gone():
                     raise SystemExit(0) from None
 
     def acquire_slot() -> None:
         while not free.acquire(timeout=1.0):
-            if os.getppid() != parent:
+            if main_process_gone():
                 raise SystemExit(0)
 
     ring = shared_memory.SharedMemory(name=ring_name)
@@ -133,10 +125,7 @@ def _reader(seq: Sequence, out: Any, free: Any, ring_name: str, slots: int, stop
 
 
 def _unpack(bundle: _Bundle, ring: Any, slot_bytes: int) -> list[ImuSample | StereoFrame]:
-    msgs: list[ImuSample | StereoFrame] = [
-        ImuSample(int(t), bundle.imu_gyro[i], bundle.imu_accel[i])
-        for i, t in enumerate(bundle.imu_t_ns.tolist())
-    ]
+    msgs: list[ImuSample | StereoFrame] = list(bundle.imu.samples())
     if bundle.t_ns is None:
         return msgs
     if bundle.slot < 0:

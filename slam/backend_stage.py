@@ -40,8 +40,9 @@ class _Estimator:
         self.was_initialized = False
         self.resets_seen = 0
 
-    def add_imu(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> None:
-        self.backend.add_imu(ImuSample(int(t_ns), gyro, accel))
+    def add_imu(self, batch: ImuBatch) -> None:
+        for sample in batch.samples():
+            self.backend.add_imu(sample)
 
     def add_keyframe(self, kf: Keyframe) -> BackendOutput:
         t0 = time.perf_counter()
@@ -80,8 +81,7 @@ def _worker(calib: Calibration, cfg: BackendConfig, inbox: Any, outbox: Any) -> 
         if isinstance(msg, EndOfStream):
             break
         if isinstance(msg, ImuBatch):
-            for i in range(len(msg.t_ns)):
-                estimator.add_imu(int(msg.t_ns[i]), msg.gyro_rad_s[i], msg.accel_m_s2[i])
+            estimator.add_imu(msg)
         elif isinstance(msg, Keyframe):
             try:
                 outbox.put(estimator.add_keyframe(msg))
@@ -167,8 +167,7 @@ class BackendStage(Stage):
                 if self._pending_samples >= 50:
                     self._flush_imu()
             else:
-                for i in range(len(msg)):
-                    self._estimator.add_imu(int(msg.t_ns[i]), msg.gyro_rad_s[i], msg.accel_m_s2[i])
+                self._estimator.add_imu(msg)
         elif isinstance(msg, Keyframe):
             if self.use_process:
                 self._flush_imu()

@@ -142,6 +142,13 @@ class ImuBatch:
     def __len__(self) -> int:
         return len(self.t_ns)
 
+    def samples(self) -> list[ImuSample]:
+        """The batch as :class:`ImuSample` messages, in order."""
+        return [
+            ImuSample(int(t), self.gyro_rad_s[i], self.accel_m_s2[i])
+            for i, t in enumerate(self.t_ns.tolist())
+        ]
+
 
 @dataclass(frozen=True, eq=False)
 class BackendOutput:

@@ -33,18 +33,23 @@ def lower_priority(increment: int) -> None:
         pass
 
 
-def receive(inbox: Any, poll_s: float = 1.0) -> Any:
-    """The next message of a worker's inbox; ends the worker if the main process has died.
+def main_process_gone() -> bool:
+    """In a spawned child: has the process that started it died (the child was re-parented)?
 
-    A killed main process (SIGKILL, OOM) cannot tell its workers to stop, and a worker blocked
-    on its inbox would wait forever: it notices that it has been re-parented instead.
+    A killed main process (SIGKILL, OOM) cannot tell its children to stop; a child blocked on
+    a queue or semaphore would wait forever, so it polls and asks this.
     """
-    parent = os.getppid()
+    parent = mp.parent_process()
+    return parent is not None and os.getppid() != parent.pid
+
+
+def receive(inbox: Any, poll_s: float = 1.0) -> Any:
+    """The next message of a worker's inbox; ends the worker if the main process has died."""
     while True:
         try:
             return inbox.get(timeout=poll_s)
         except queue.Empty:
-            if os.getppid() != parent:
+            if main_process_gone():
                 raise SystemExit(0) from None
 
 
