@@ -49,6 +49,17 @@ def nearest_rigid(transform: np.ndarray) -> np.ndarray:
     return out
 
 
+def is_rigid(transforms: np.ndarray, tol: float) -> np.ndarray:
+    """Per 4x4 in ``transforms`` (shape (..., 4, 4)): finite, rotation block orthonormal to
+    within ``tol`` (max |R^T R - I|) and a proper rotation (det > 0)."""
+    t = np.asarray(transforms, dtype=float)
+    rot = np.where(np.isfinite(t[..., :3, :3]), t[..., :3, :3], 0.0)
+    gram = np.swapaxes(rot, -1, -2) @ rot
+    with np.errstate(invalid="ignore", over="ignore"):
+        orthonormal = np.abs(gram - np.eye(3)).max(axis=(-2, -1)) <= tol
+    return np.isfinite(t).all(axis=(-2, -1)) & orthonormal & (np.linalg.det(rot) > 0)
+
+
 def transform_points(a_from_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
     """Map (N, 3) points from frame b to frame a."""
     return points_b @ a_from_b[:3, :3].T + a_from_b[:3, 3]
@@ -89,22 +100,16 @@ def skew(v: np.ndarray) -> np.ndarray:
 
 
 def so3_exp(omega: np.ndarray) -> np.ndarray:
-    """Rotation matrix for one rotation vector (rad), by Rodrigues' formula.
-
-    Written out because it runs per IMU sample in the front end's prior: ~10x faster than
-    building a scipy Rotation for a single vector.
-    """
-    w = np.asarray(omega, dtype=float)
-    theta2 = float(w @ w)
-    k = skew(w)
-    if theta2 < 1e-12:
-        return np.eye(3) + k + 0.5 * (k @ k)
-    theta = np.sqrt(theta2)
-    return np.eye(3) + (np.sin(theta) / theta) * k + ((1.0 - np.cos(theta)) / theta2) * (k @ k)
+    """Rotation matrix for one rotation vector (rad), by Rodrigues' formula (:func:`so3_exp_batch`)."""
+    return so3_exp_batch(omega)[0]
 
 
 def so3_exp_batch(omegas: np.ndarray) -> np.ndarray:
-    """Rotation matrices (N, 3, 3) for rotation vectors (N, 3) (rad): :func:`so3_exp`, vectorised."""
+    """Rotation matrices (N, 3, 3) for rotation vectors (N, 3) (rad), by Rodrigues' formula.
+
+    Written out (not scipy) because the front end's IMU prior calls it every frame: a scipy
+    Rotation costs more to build than the few samples between two frames take to integrate.
+    """
     w = np.asarray(omegas, dtype=float).reshape(-1, 3)
     theta2 = np.einsum("ni,ni->n", w, w)
     k = np.zeros((len(w), 3, 3))

@@ -115,10 +115,11 @@ def track_klt(
         flags=flags,
     )
     h, w = pyr_to.shape[:2]
+    pts = p1.reshape(-1, 2)
+    inside = (pts[:, 0] >= 0) & (pts[:, 0] < w - 1) & (pts[:, 1] >= 0) & (pts[:, 1] < h - 1)
+    ok = (st1.ravel() == 1) & inside
     if not backward_check:
-        p1 = p1.reshape(-1, 2)
-        inside = (p1[:, 0] >= 0) & (p1[:, 0] < w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] < h - 1)
-        return p1.astype(np.float32), (st1.ravel() == 1) & inside
+        return pts.astype(np.float32), ok
     p0_back, st2, _ = cv2.calcOpticalFlowPyrLK(
         pyr_to,
         pyr_from,
@@ -129,8 +130,6 @@ def track_klt(
         criteria=criteria,
         flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
     )
-    p1 = p1.reshape(-1, 2)
     fb = np.linalg.norm(p0_back.reshape(-1, 2) - p0.reshape(-1, 2), axis=1)
-    inside = (p1[:, 0] >= 0) & (p1[:, 0] < w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] < h - 1)
-    ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < cfg.klt_fb_max_error_px) & inside
-    return p1.astype(np.float32), ok
+    ok &= (st2.ravel() == 1) & (fb < cfg.klt_fb_max_error_px)
+    return pts.astype(np.float32), ok

@@ -26,7 +26,13 @@ from slam.calibration import Calibration
 from slam.config import FrontendConfig
 from slam.frontend.features import build_pyramid, detect_features, track_klt
 from slam.frontend.stereo import StereoMatcher
-from slam.geometry import invert_transform, make_transform, nearest_rigid
+from slam.geometry import (
+    invert_transform,
+    is_rigid,
+    make_transform,
+    nearest_rigid,
+    transform_points,
+)
 from slam.imu_buffer import ImuBuffer, integrate_gyro, propagate_pose
 from slam.messages import Estimate, Keyframe, StereoFrame, TrackingResult
 
@@ -115,12 +121,7 @@ class FrontEnd:
         fe_pose = self.kf_poses.get(est.keyframe_id)
         if fe_pose is None or not self.mapped:
             return
-        rot = est.world_from_body[:3, :3]
-        if not (
-            np.isfinite(est.world_from_body).all()
-            and np.isfinite(fe_pose).all()
-            and np.abs(rot.T @ rot - np.eye(3)).max() < 1e-3
-        ):
+        if not (is_rigid(est.world_from_body, tol=1e-3) and np.isfinite(fe_pose).all()):
             self.stats.state_log.append((est.t_ns, "back-end estimate ignored: not a rigid pose"))
             return
         correction = nearest_rigid(est.world_from_body @ invert_transform(fe_pose))
@@ -447,8 +448,7 @@ class FrontEnd:
             for row, lid in enumerate(ids.tolist()):
                 if lid >= 0 and lid in self.landmarks:
                     known_world[row] = self.landmarks[lid]
-            cam_from_world = invert_transform(world_from_cam)
-            known_cam = known_world @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+            known_cam = transform_points(invert_transform(world_from_cam), known_world)
             matches = self.stereo.match(pyr, pyr_right, px, known_cam)
             right_px[matches.ok] = matches.pixels_right[matches.ok]
             need = matches.ok & (ids < 0)

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from slam.calibration import Calibration
-from slam.geometry import invert_transform
+from slam.geometry import invert_transform, is_rigid
 from slam.loop.closer import LoopCloser, LoopEvent, PgoOutcome, run_pgo
 from slam.loop.config import LoopClosureConfig
 from slam.loop.relocaliser import Relocaliser
@@ -39,6 +39,7 @@ REFRESH_LAST_KEYFRAMES = 30  # odometry poses re-read per new keyframe (the back
 FULL_REFRESH_EVERY = 10  # ... and the older ones', every this many keyframes (see below)
 FRAME_JUMP_M = 0.1  # an old keyframe moving more than this between sweeps: a change of frame
 FRAME_JUMP_DEG = 3.0
+RIGID_TOL = 1e-6  # max |R^T R - I| of an odometry pose the closer accepts
 
 
 class OdometryRefresher:
@@ -74,12 +75,7 @@ class OdometryRefresher:
         if pose is None:
             return None
         pose = np.asarray(pose, dtype=float)
-        rot = pose[:3, :3]
-        if (
-            not np.all(np.isfinite(pose))
-            or np.abs(rot.T @ rot - np.eye(3)).max() > 1e-6
-            or np.linalg.det(rot) <= 0
-        ):
+        if not is_rigid(pose, tol=RIGID_TOL):
             self.invalid_poses += 1
             return None
         return pose
@@ -106,11 +102,7 @@ class OdometryRefresher:
             ids = [kid for kid, _ in found]
             poses = np.array([p for _, p in found], dtype=float).reshape(-1, 4, 4)
             before_all = np.array([self._seen.get(k, self.sent[k]) for k in ids]).reshape(-1, 4, 4)
-            rot = poses[:, :3, :3]
-            gram_err = np.abs(np.einsum("nji,njk->nik", rot, rot) - np.eye(3)).max(axis=(1, 2))
-            with np.errstate(invalid="ignore"):
-                valid = np.isfinite(poses).all(axis=(1, 2)) & (gram_err <= 1e-6)
-                valid &= np.linalg.det(np.where(np.isfinite(rot), rot, 0.0)) > 0
+            valid = is_rigid(poses, tol=RIGID_TOL)
             self.invalid_poses += int((~valid).sum())
             changed = valid & ~(poses == before_all).all(axis=(1, 2))  # usually: frozen poses
             for i in np.flatnonzero(changed).tolist():
