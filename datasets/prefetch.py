@@ -73,13 +73,16 @@ def _pack(
     return _Bundle(batch, frame.t_ns, frame.index, slot, shapes)
 
 
-def _reader(seq: Sequence, out: Any, free: Any, ring_name: str, slots: int, stop: Any) -> None:
+def _reader(
+    seq: Sequence, out: Any, free: Any, ring_name: str, slots: int, stop: Any, idle: bool
+) -> None:
     """The reader process: bundles, then ``(_END, warnings)`` or the exception.
 
-    It runs niced: it only has to stay a few frames ahead, the front end must answer each one.
-    Slots are used round robin; ``free`` counts the slots the consumer has emptied.
+    It runs at a lower priority (``idle``: SCHED_IDLE, :func:`slam.worker.lower_priority`): it
+    only has to stay a few frames ahead, the front end must answer each one. Slots are used
+    round robin; ``free`` counts the slots the consumer has emptied.
     """
-    lower_priority(READER_NICE)
+    lower_priority(READER_NICE, idle)
 
     def wait_for_parent(step: Any) -> Any:
         while True:  # a killed main process never reads again: notice it and end
@@ -143,8 +146,11 @@ def _unpack(bundle: _Bundle, ring: Any, slot_bytes: int) -> list[ImuSample | Ste
     return msgs
 
 
-def prefetched_messages(seq: Sequence, frames_ahead: int = 8) -> Iterator[ImuSample | StereoFrame]:
-    """``seq.messages()``, decoded in a reader process at most ``frames_ahead`` frames ahead.
+def prefetched_messages(
+    seq: Sequence, frames_ahead: int = 8, idle: bool = False
+) -> Iterator[ImuSample | StereoFrame]:
+    """``seq.messages()``, decoded in a reader process at most ``frames_ahead`` frames ahead
+    (``idle``: the reader runs under SCHED_IDLE).
 
     The reader starts at the first ``next()``; closing the generator (or leaving a ``for`` loop
     over it early) stops it. Warnings the reader collects are appended to ``seq.warnings`` at
@@ -158,7 +164,7 @@ def prefetched_messages(seq: Sequence, frames_ahead: int = 8) -> Iterator[ImuSam
     stop = ctx.Event()
     proc = ctx.Process(
         target=_reader,
-        args=(seq, out, free, ring.name, frames_ahead, stop),
+        args=(seq, out, free, ring.name, frames_ahead, stop, idle),
         daemon=True,
         name="slam-reader",
     )

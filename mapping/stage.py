@@ -27,7 +27,7 @@ import numpy as np
 from slam.calibration import Calibration
 from slam.messages import EndOfStream, Keyframe, MapperReport, MeshSnapshot
 from slam.stage import Stage, StageError, latency_summary
-from slam.worker import READY, WorkerProcess, lower_priority, receive
+from slam.worker import READY, WorkerProcess, receive
 
 log = logging.getLogger(__name__)
 
@@ -137,7 +137,6 @@ def _finish(mapper: Any, request: _Finish) -> tuple[_MapperSummary, MeshSnapshot
 
 def _worker(calib: Calibration, cfg: MapperStageConfig, inbox: Any, outbox: Any) -> None:
     """The worker process: fuse keyframes, report, snapshot meshes, finish with mesh.ply."""
-    lower_priority(10)  # the lowest priority of the pipeline: it only has to keep up on average
     try:
         mapper = _make_mapper(calib, cfg)
     except Exception as exc:
@@ -176,7 +175,9 @@ class MapperStage(Stage):
         cfg: MapperStageConfig,
         on_mesh: Callable[[MeshSnapshot], None],
         threaded: bool,
+        idle_worker: bool = False,
     ):
+        """``idle_worker``: run the worker process under SCHED_IDLE (:func:`lower_priority`)."""
         super().__init__("mapper", maxsize=256, threaded=threaded)
         self.cfg = cfg
         self.calib = calib
@@ -201,7 +202,13 @@ class MapperStage(Stage):
         self.use_process = threaded
         if self.use_process:
             self._worker = WorkerProcess(
-                "mapper", _worker, (calib, cfg), self._on_worker_item, self._on_worker_died
+                "mapper",
+                _worker,
+                (calib, cfg),
+                self._on_worker_item,
+                self._on_worker_died,
+                nice=10,  # the lowest priority of the pipeline: it only has to keep up on average
+                idle=idle_worker,
             )
         else:
             self._mapper = _make_mapper(calib, cfg)

@@ -91,6 +91,13 @@ class PlayerConfig:
     OpenCV call the front end makes releases the GIL; getting it back from a thread running
     Python (the player decoding, a queue feeder pickling) can take up to this long, several
     times per frame. A shorter interval trades a little throughput for front-end latency."""
+    idle_workers: bool = True
+    """Run the loop-closure, mapper and reader processes under Linux's SCHED_IDLE policy: they
+    get the CPU the front end and back end leave, and a front end that wakes up preempts them
+    at once (the back end runs at nice 19, see ``slam.backend_stage.BACKEND_NICE``). On 2
+    cores this took front-end p99 on room-aggressive (``--speed max``) from 35-48 ms to about
+    25 ms. The cost: other normal-priority work that keeps every core busy starves them
+    until a core frees up. False: nice levels only."""
 
 
 @dataclass

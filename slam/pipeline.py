@@ -215,7 +215,9 @@ def run_slam(
             if viewer is not None:
                 viewer.put(snapshot, block=snapshot.t_ns == 0)  # the final mesh always gets in
 
-        mapper = MapperStage(seq.calibration, cfg.mapping, on_mesh, threaded)
+        mapper = MapperStage(
+            seq.calibration, cfg.mapping, on_mesh, threaded, cfg.player.idle_workers
+        )
         keyframe_consumers.append(mapper)
     if cfg.loop_closure:
         from slam.loop.viz import log_loop_correction
@@ -237,7 +239,13 @@ def run_slam(
             return pose if pose is not None else frontend.kf_poses.get(kid)
 
         loop_stage = (
-            LoopClosureWorkerStage(seq.calibration, cfg.loop, odometry_pose, on_loop_correction)
+            LoopClosureWorkerStage(
+                seq.calibration,
+                cfg.loop,
+                odometry_pose,
+                on_loop_correction,
+                cfg.player.idle_workers,
+            )
             if threaded
             else LoopClosureStage(
                 seq.calibration, cfg.loop, odometry_pose, on_loop_correction, threaded
@@ -383,7 +391,9 @@ def run_slam(
         imu_pending.clear()
 
     messages = (
-        prefetched_messages(seq) if threaded and cfg.player.reader_process else iter(seq.messages())
+        prefetched_messages(seq, idle=cfg.player.idle_workers)
+        if threaded and cfg.player.reader_process
+        else iter(seq.messages())
     )
     try:
         for msg in messages:

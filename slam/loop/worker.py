@@ -28,7 +28,7 @@ from slam.loop.store import KeyframeDescription, KeyframeStore
 from slam.loop.vocabulary import load_default_vocabulary
 from slam.messages import EndOfStream, Keyframe, LoopCorrection
 from slam.stage import Latest, Stage, StageError
-from slam.worker import READY, WorkerProcess, lower_priority, receive
+from slam.worker import READY, WorkerProcess, receive
 
 LOOP_WORKER_NICE = 10
 
@@ -61,7 +61,6 @@ class _LoopFinal:
 def _worker(calib: Calibration, cfg: LoopClosureConfig, inbox: Any, outbox: Any) -> None:
     from slam.loop.closer import LoopCloser
 
-    lower_priority(LOOP_WORKER_NICE)  # background work: the front end and back end come first
     closer = LoopCloser(calib, cfg, None, inline_pgo=True)
     outbox.put(READY)
     while True:
@@ -123,7 +122,9 @@ class LoopClosureWorkerStage(Stage):
         cfg: LoopClosureConfig,
         odometry_pose: Callable[[int], np.ndarray | None],
         on_correction: Callable[[LoopCorrection], None],
+        idle_worker: bool = False,
     ):
+        """``idle_worker``: run the worker process under SCHED_IDLE (:func:`lower_priority`)."""
         super().__init__("loop", maxsize=256, threaded=True)
         self.cfg = cfg
         self.odometry_pose = odometry_pose
@@ -138,7 +139,13 @@ class LoopClosureWorkerStage(Stage):
         self._final: _LoopFinal | None = None
         self._events: list[tuple[str, str]] = []
         self._worker = WorkerProcess(
-            "loop", _worker, (calib, cfg), self._on_worker_item, self._on_worker_died
+            "loop",
+            _worker,
+            (calib, cfg),
+            self._on_worker_item,
+            self._on_worker_died,
+            nice=LOOP_WORKER_NICE,  # background work: the front end and back end come first
+            idle=idle_worker,
         )
 
     # -- stage ---------------------------------------------------------------------------
