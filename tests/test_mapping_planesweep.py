@@ -211,31 +211,6 @@ def _reproject_depth(depth, k_from, k_to):
     return out
 
 
-def _pnp_src_from_ref(ref_rgb, ref_depth, src_rgb, k):
-    """Colour-camera relative pose from ORB matches lifted with the reference sensor depth."""
-    orb = cv2.ORB_create(3000)
-    ga, gb = (cv2.cvtColor(x, cv2.COLOR_RGB2GRAY) for x in (ref_rgb, src_rgb))
-    ka, da = orb.detectAndCompute(ga, None)
-    kb, db = orb.detectAndCompute(gb, None)
-    matches = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(da, db)
-    pa = np.float32([ka[m.queryIdx].pt for m in matches])
-    pb = np.float32([kb[m.trainIdx].pt for m in matches])
-    z = ref_depth[
-        np.round(pa[:, 1]).astype(int).clip(0, 479), np.round(pa[:, 0]).astype(int).clip(0, 639)
-    ]
-    ok = z > 0
-    pts = np.stack(
-        [(pa[ok, 0] - k[0, 2]) / k[0, 0] * z[ok], (pa[ok, 1] - k[1, 2]) / k[1, 1] * z[ok], z[ok]], 1
-    )
-    _, rvec, tvec, _ = cv2.solvePnPRansac(
-        pts, pb[ok], k, None, reprojectionError=2.0, iterationsCount=300
-    )
-    out = np.eye(4)
-    out[:3, :3] = cv2.Rodrigues(rvec)[0]
-    out[:3, 3] = tvec.ravel()
-    return out
-
-
 SEVEN_SCENES_COLOR_K = np.array([[525.0, 0.0, 320.0], [0.0, 525.0, 240.0], [0.0, 0.0, 1.0]])
 """7-Scenes colour camera model: the usual Kinect v1 colour focal length (525 px; not in the
 data) at the depth camera's centre and principal point. The data documents neither a colour
@@ -262,40 +237,94 @@ def _seven_scenes_sweep(folder, ref_i, src_from_ref_of):
     return np.median(np.abs(res.depth_m[both] - sensor[both]) / sensor[both]), both.mean()
 
 
-def test_seven_scenes_sweep_agrees_with_sensor_depth(shared_data):
-    """Issue check (median relative error <= 5 %) with the best honest colour poses we have.
+SEVEN_SCENES_CALIBRATION_PAIRS = [(i, i + 10) for i in (0, 20, 40, 60, 320, 340, 360, 380)]
+"""Colour-calibration pairs, disjoint from the evaluated frames 90-310 (references and sources)."""
 
-    The colour frames' relative poses come from PnP (RANSAC, 2 px) on ORB matches between the
-    two colour images, the reference features lifted with the reference's sensor depth. That
-    is partly circular (the sparse features' depth is sensor depth); the dense depth itself comes
-    only from photo-consistency of the colour images. Why not the dataset poses directly: they
-    are depth-camera (KinectFusion) poses and the sensors are unregistered; projecting the sensor
-    depth with the dataset relative pose lands 1-3 px (median) away from where the PnP pose puts
-    it, against 15-28 px of parallax over 10 frames, i.e. 7-13 % of depth (measured on frames
-    100, 200, 300; longer baselines do not help, the pose error grows too). That variant is
-    checked with its own, looser bound in the next test.
+
+@pytest.fixture(scope="module")
+def seven_scenes_calibration(shared_data):
+    """The colour camera's focal length from the data (pairs disjoint from the sweep's frames).
+
+    Only the focal length: with these poses the other parameters are not determined. Freeing
+    everything (principal point, distortion, extrinsic, time offset) on 29 pairs gave fx 531,
+    fy 527, cy 209 with the extrinsic rotated 2 degrees (a pair that trades one against the
+    other), a translation of (0.6, 1.7, -0.3) cm and 0.16 frames, and made the sweep worse
+    (11.8 / 10.2 / 9.6 %); on these 8 pairs it went to fx 549, fy 519, cy 175. The extrinsic
+    translation moved by 2-3 cm between calibration subsets, far beyond its formal 1-4 mm std.
     """
+    from datasets.rgbd_calibration import ColorCalibrationConfig, calibrate_color_camera
     from datasets.rgbd_folder import RgbdFolder
 
     folder = RgbdFolder(require(shared_data / "7scenes_rgbd_400"))
-    results = [
-        _seven_scenes_sweep(
-            folder,
-            ref_i,
-            lambda ref, sensor, j, src: _pnp_src_from_ref(
-                ref.color_rgb, sensor, src, SEVEN_SCENES_COLOR_K
-            ),
+    cfg = ColorCalibrationConfig(
+        separate_focals=False,
+        distortion=False,
+        time_offset=False,
+        fixed=("cx", "cy", "rx", "ry", "rz", "tx", "ty", "tz"),
+        max_corners=300,
+        outer_iterations=3,
+    )
+    return folder, calibrate_color_camera(folder, SEVEN_SCENES_CALIBRATION_PAIRS, cfg)
+
+
+def test_seven_scenes_sweep_with_calibrated_colour_camera(seven_scenes_calibration):
+    """Issue check (median relative error <= 5 %), honestly: NOT met with the dataset poses.
+
+    The colour camera is calibrated from the data itself (datasets/rgbd_calibration.py) on
+    frame pairs disjoint from the evaluated frames; the sweep uses the dataset's depth-camera
+    poses moved to the colour camera, and the sensor depth is rendered into the colour camera.
+    The calibration confirms the folklore focal length (525-528 px over three subsets) but
+    cannot go further: its residuals stay at a median 1.1-1.4 px per 10-frame pair whatever
+    is freed, because the KinectFusion poses disagree with the colour images frame by frame
+    (1-3 px per pair, 12 px on frames 120-130). Fitting a time offset per frame (colour frame
+    k at depth time k + tau_k) gave tau = +0.1..+0.3 frames with a one-frame slip over frames
+    180-221, but did not improve the sweep either, so the disagreement is pose noise, not
+    timing. Measured here: 8.5 / 12.2 / 6.9 % (frames 100 / 200 / 300), as the assumed model
+    of the next test; the bound is the baseline's, not the issue's. A colour pose per frame
+    from PnP against the reference's own sensor depth reached 4-5 % on frames 100 and 300
+    (this file's git history), but that is partly circular.
+    """
+    from datasets.rgbd_calibration import PoseInterpolator, render_depth
+
+    folder, cal = seven_scenes_calibration
+    assert 505.0 < cal.intrinsics.fx < 545.0, cal.intrinsics  # Kinect v1 colour at 640x480
+    poses = PoseInterpolator(folder)
+    intr = cal.intrinsics
+    pinhole = CameraIntrinsics(intr.width, intr.height, intr.fx, intr.fy, intr.cx, intr.cy)
+    undistort = Undistorter(intr)
+    results = []
+    for ref_i in (100, 200, 300):
+        color_from_depth = cal.color_from_depth_frame(poses, ref_i, ref_i)
+        sensor = render_depth(folder.depth_m(ref_i), folder.K, color_from_depth, pinhole)
+        world_from_ref = cal.world_from_color(poses, ref_i)
+        sources = [
+            SourceView(
+                undistort(folder.color_rgb(j)),
+                pinhole.K,
+                invert_transform(cal.world_from_color(poses, j)) @ world_from_ref,
+            )
+            for j in (ref_i - 10, ref_i + 10)
+        ]
+        res = plane_sweep(
+            undistort(folder.color_rgb(ref_i)),
+            pinhole.K,
+            sources,
+            SweepConfig(depth_min_m=0.5, depth_max_m=4.0, threads=2),
         )
-        for ref_i in (100, 300)
-    ]
-    assert all(cov > 0.25 for _, cov in results), results
-    assert np.median([m for m, _ in results]) <= 0.05, results
+        both = res.valid & (sensor > 0)
+        rel = np.abs(res.depth_m[both] - sensor[both]) / sensor[both]
+        results.append((float(np.median(rel)), float(both.mean())))
+    print(f"calibrated f = {cal.intrinsics.fx:.1f} px; (median relative error, coverage):", results)
+    assert all(cov > 0.15 for _, cov in results), results
+    assert np.median([m for m, _ in results]) <= 0.15, results
 
 
 def test_seven_scenes_sweep_with_dataset_poses(shared_data):
-    """No sensor depth in the poses at all: the dataset's (depth-camera) relative poses used for
-    the colour camera as they are. The sensors are unregistered and these poses disagree with
-    the colour images by 1-3 px, so the bound is looser than the issue's 5 % (see above)."""
+    """Baseline: the dataset's (depth-camera) relative poses used for the colour camera as they
+    are, with the assumed colour model SEVEN_SCENES_COLOR_K (525 px at the depth camera's centre,
+    no extrinsic, no distortion). Measured 8.4 / 11.4 / 6.9 % on frames 100 / 200 / 300; the
+    poses disagree with the colour images by 1-3 px, so the bound is looser than the issue's
+    5 % (see the calibrated variant above)."""
     from datasets.rgbd_folder import RgbdFolder
 
     folder = RgbdFolder(require(shared_data / "7scenes_rgbd_400"))
@@ -305,7 +334,8 @@ def test_seven_scenes_sweep_with_dataset_poses(shared_data):
             ref_i,
             lambda ref, sensor, j, src, r=ref_i: invert_transform(folder.pose(j)) @ folder.pose(r),
         )
-        for ref_i in (100, 300)
+        for ref_i in (100, 200, 300)
     ]
+    print("assumed colour model: (median relative error, coverage) per frame", results)
     assert all(cov > 0.15 for _, cov in results), results
     assert np.median([m for m, _ in results]) <= 0.15, results
