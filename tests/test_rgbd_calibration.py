@@ -69,7 +69,7 @@ class _SyntheticRgbd:
 @pytest.fixture(scope="module")
 def synthetic_calibration():
     src = _SyntheticRgbd()
-    pairs = calibration_pairs(list(range(0, 40, 2)), 4)
+    pairs = calibration_pairs(list(range(0, 40, 4)), 4)
     # Start 11 px off in focal length, 3.5 px in the principal point, 2.5 cm and 0.8 degrees off
     # in the extrinsic and 0.3 frames in time.
     cfg = ColorCalibrationConfig(initial_focal_px=255.0, max_corners=300)
@@ -84,10 +84,33 @@ def test_recovers_known_colour_camera(synthetic_calibration):
     np.testing.assert_allclose(intr.distortion[:2], TRUE_COLOR.distortion[:2], atol=0.02)
     assert abs(cal.time_offset_frames - TRUE_TAU) < 0.1
     err = invert_transform(TRUE_COLOR_FROM_DEPTH) @ cal.color_from_depth
-    assert np.degrees(np.linalg.norm(so3_log(err[:3, :3]))) < 0.3
+    # A rotation about x/y trades against a principal-point shift (measured: cy 1.2 px low with
+    # 0.24 degrees about x), so the parameters are checked loosely and their effect tightly.
+    assert np.degrees(np.linalg.norm(so3_log(err[:3, :3]))) < 0.5
     # Depth along the axis trades against the focal length (both scale the image): 1 cm.
     assert np.linalg.norm(cal.color_from_depth[:3, 3] - TRUE_COLOR_FROM_DEPTH[:3, 3]) < 0.01
     assert cal.rms_px < 0.3 < cal.rms_px_initial
+    # Where the depth camera's points land in the colour image: the true vs the estimated model.
+    src = _SyntheticRgbd(2)
+    v, u = np.mgrid[0 : HW[0] : 4, 0 : HW[1] : 4]
+    z = src.depth_m(0)[v, u].astype(float)
+    pts = np.stack(
+        [(u - K_DEPTH[0, 2]) / K_DEPTH[0, 0] * z, (v - K_DEPTH[1, 2]) / K_DEPTH[1, 1] * z, z]
+    )
+    pts = pts.reshape(3, -1).T
+    true_uv = TRUE_COLOR.project(
+        pts @ TRUE_COLOR_FROM_DEPTH[:3, :3].T + TRUE_COLOR_FROM_DEPTH[:3, 3]
+    )
+    est_uv = intr.project(pts @ cal.color_from_depth[:3, :3].T + cal.color_from_depth[:3, 3])
+    inside = (true_uv >= 0).all(1) & (true_uv[:, 0] < HW[1]) & (true_uv[:, 1] < HW[0])
+    dist = np.linalg.norm(est_uv - true_uv, axis=1)[inside]
+    start_uv = CameraIntrinsics(320, 240, 255.0, 255.0, 159.5, 119.5).project(pts)
+    start = np.linalg.norm(start_uv - true_uv, axis=1)[inside]
+    # Measured: 0.49 / 0.78 px (median / 95 %) from 6.8 / 12.7 px at the start. The lateral
+    # registration is the weakest part: on smooth surfaces it only moves the lifted point along
+    # the surface, which changes its parallax in the other view very little.
+    assert np.median(dist) < 0.75 and np.percentile(dist, 95) < 1.2, np.percentile(dist, [50, 95])
+    assert np.median(dist) < 0.2 * np.median(start), (np.median(dist), np.median(start))
 
 
 def test_render_depth_matches_direct_render():
