@@ -31,7 +31,7 @@ registration least (on synthetic data 0.5 px median from 6.8 px at the start), b
 smooth surface it only slides the lifted point along the surface. On real data the poses'
 own per-frame error must be well below a pixel, or it is absorbed by these weak directions:
 on 7-Scenes (KinectFusion poses, 1-3 px disagreement per 10-frame pair) only the focal length
-was reproducible across calibration subsets (525-528 px).
+was reproducible across calibration subsets (524-529 px).
 """
 
 from __future__ import annotations
@@ -272,6 +272,35 @@ def render_depth(
     out = np.zeros(h * w)
     out[idx[order][first]] = z[order][first]
     return out.reshape(h, w).astype(np.float32)
+
+
+def color_in_depth_camera(
+    color_rgb: np.ndarray,
+    depth_m: np.ndarray,
+    K_depth: np.ndarray,
+    intrinsics: CameraIntrinsics,
+    color_from_depth: np.ndarray,
+) -> np.ndarray:
+    """The colour image resampled onto the depth image's pixels (registered to the depth).
+
+    Each depth pixel's 3-D point is moved by ``color_from_depth`` (for a folder: the
+    calibration's :meth:`ColorCalibration.color_from_depth_frame`) and projected with the colour
+    ``intrinsics`` (distortion included); the colour there is sampled bilinearly. Pixels without
+    depth or landing outside the colour image are 0. Occlusion is not checked: a depth point
+    hidden from the colour camera takes the colour of what hides it.
+    """
+    h, w = depth_m.shape
+    pts = depth_points(depth_m, K_depth).reshape(-1, 3)
+    pc = pts @ color_from_depth[:3, :3].T + color_from_depth[:3, 3]
+    ok = (pts[:, 2] > 0) & (pc[:, 2] > 1e-3)
+    uv = np.full((h * w, 2), -1.0)
+    uv[ok] = intrinsics.project(pc[ok])
+    maps = uv.reshape(h, w, 2).astype(np.float32)
+    out = cv2.remap(
+        color_rgb, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
+    )
+    out[~ok.reshape(h, w)] = 0
+    return out
 
 
 @dataclass(frozen=True, eq=False)

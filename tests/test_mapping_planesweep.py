@@ -273,16 +273,16 @@ def test_seven_scenes_sweep_with_calibrated_colour_camera(seven_scenes_calibrati
     The colour camera is calibrated from the data itself (datasets/rgbd_calibration.py) on
     frame pairs disjoint from the evaluated frames; the sweep uses the dataset's depth-camera
     poses moved to the colour camera, and the sensor depth is rendered into the colour camera.
-    The calibration confirms the folklore focal length (525-528 px over three subsets) but
+    The calibration confirms the folklore focal length (524-529 px over four subsets) but
     cannot go further: its residuals stay at a median 1.1-1.4 px per 10-frame pair whatever
     is freed, because the KinectFusion poses disagree with the colour images frame by frame
     (1-3 px per pair, 12 px on frames 120-130). Fitting a time offset per frame (colour frame
     k at depth time k + tau_k) gave tau = +0.1..+0.3 frames with a one-frame slip over frames
     180-221, but did not improve the sweep either, so the disagreement is pose noise, not
-    timing. Measured here: 8.5 / 12.2 / 6.9 % (frames 100 / 200 / 300), as the assumed model
-    of the next test; the bound is the baseline's, not the issue's. A colour pose per frame
-    from PnP against the reference's own sensor depth reached 4-5 % on frames 100 and 300
-    (this file's git history), but that is partly circular.
+    timing. Measured here: 8.6 / 12.4 / 7.0 % (frames 100 / 200 / 300; f = 529.3 px), as the
+    assumed model of the next test; the bound is the baseline's, not the issue's. A colour
+    pose per frame from PnP against the reference's own sensor depth reached 4-5 % on frames
+    100 and 300 (this file's git history), but that is partly circular.
     """
     from datasets.rgbd_calibration import PoseInterpolator, render_depth
 

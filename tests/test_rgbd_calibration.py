@@ -12,6 +12,7 @@ from datasets.rgbd_calibration import (
     PoseInterpolator,
     calibrate_color_camera,
     calibration_pairs,
+    color_in_depth_camera,
     render_depth,
 )
 from slam.calibration import CameraIntrinsics
@@ -122,3 +123,23 @@ def test_render_depth_matches_direct_render():
     both = (rendered > 0) & (direct > 0)
     assert both.mean() > 0.8
     assert np.median(np.abs(rendered[both] - direct[both]) / direct[both]) < 0.003
+
+
+def test_colour_registered_to_depth_matches_depth_camera_view():
+    """With the true calibration, the colour image resampled onto the depth pixels is the image
+    the depth camera would see (the synthetic colour is exposed TRUE_TAU frames later)."""
+    src = _SyntheticRgbd(2)
+    color_from_depth = invert_transform(
+        src._interp.at(TRUE_TAU) @ invert_transform(TRUE_COLOR_FROM_DEPTH)
+    ) @ src.pose(0)
+    registered = color_in_depth_camera(
+        src.color_rgb(0), src.depth_m(0), K_DEPTH, TRUE_COLOR, color_from_depth
+    )[..., 0].astype(float)
+    direct = src.scene.render(src.pose(0), K_DEPTH, HW)[0].astype(float)
+    seen = registered > 0
+    assert seen.mean() > 0.8
+    assert np.median(np.abs(registered[seen] - direct[seen])) < 3.0  # grey levels
+    unregistered = src.color_rgb(0)[..., 0].astype(float)  # the colour used as if registered
+    assert np.median(np.abs(unregistered - direct)) > 5 * np.median(
+        np.abs(registered[seen] - direct[seen])
+    )
