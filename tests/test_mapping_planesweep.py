@@ -211,6 +211,31 @@ def _reproject_depth(depth, k_from, k_to):
     return out
 
 
+def _pnp_src_from_ref(ref_rgb, ref_depth, src_rgb, k):
+    """Colour-camera relative pose from ORB matches lifted with the reference sensor depth."""
+    orb = cv2.ORB_create(3000)
+    ga, gb = (cv2.cvtColor(x, cv2.COLOR_RGB2GRAY) for x in (ref_rgb, src_rgb))
+    ka, da = orb.detectAndCompute(ga, None)
+    kb, db = orb.detectAndCompute(gb, None)
+    matches = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(da, db)
+    pa = np.float32([ka[m.queryIdx].pt for m in matches])
+    pb = np.float32([kb[m.trainIdx].pt for m in matches])
+    z = ref_depth[
+        np.round(pa[:, 1]).astype(int).clip(0, 479), np.round(pa[:, 0]).astype(int).clip(0, 639)
+    ]
+    ok = z > 0
+    pts = np.stack(
+        [(pa[ok, 0] - k[0, 2]) / k[0, 0] * z[ok], (pa[ok, 1] - k[1, 2]) / k[1, 1] * z[ok], z[ok]], 1
+    )
+    _, rvec, tvec, _ = cv2.solvePnPRansac(
+        pts, pb[ok], k, None, reprojectionError=2.0, iterationsCount=300
+    )
+    out = np.eye(4)
+    out[:3, :3] = cv2.Rodrigues(rvec)[0]
+    out[:3, 3] = tvec.ravel()
+    return out
+
+
 SEVEN_SCENES_COLOR_K = np.array([[525.0, 0.0, 320.0], [0.0, 525.0, 240.0], [0.0, 0.0, 1.0]])
 """7-Scenes colour camera model: the usual Kinect v1 colour focal length (525 px; not in the
 data) at the depth camera's centre and principal point. The data documents neither a colour
@@ -339,3 +364,33 @@ def test_seven_scenes_sweep_with_dataset_poses(shared_data):
     print("assumed colour model: (median relative error, coverage) per frame", results)
     assert all(cov > 0.15 for _, cov in results), results
     assert np.median([m for m, _ in results]) <= 0.15, results
+
+
+def test_seven_scenes_sweep_with_colour_poses_from_pnp(shared_data):
+    """The issue's bound (median relative error <= 5 %) with colour-camera relative poses.
+
+    The sweep needs the colour camera's poses, and the dataset has none: its poses track the
+    (unregistered) depth camera and disagree with the colour images by 1-3 px over 10 frames
+    (tests above). Here each source's pose comes from PnP (RANSAC, 2 px) on ORB matches between
+    the two colour images, the reference features lifted with the reference's sensor depth.
+    That is partly circular: the sparse features' depth is sensor depth, and so is the truth.
+    The dense depth itself comes only from photo-consistency of the colour images (a few
+    hundred PnP points against ~50 000 compared pixels). Measured: 3.9 % and 2.4 % on frames
+    100 and 300 (coverage 29 % and 33 %).
+    """
+    from datasets.rgbd_folder import RgbdFolder
+
+    folder = RgbdFolder(require(shared_data / "7scenes_rgbd_400"))
+    results = [
+        _seven_scenes_sweep(
+            folder,
+            ref_i,
+            lambda ref, sensor, j, src: _pnp_src_from_ref(
+                ref.color_rgb, sensor, src, SEVEN_SCENES_COLOR_K
+            ),
+        )
+        for ref_i in (100, 300)
+    ]
+    print("7-Scenes sweep with PnP colour poses (median rel. error, coverage):", results)
+    assert all(cov > 0.25 for _, cov in results), results
+    assert np.median([m for m, _ in results]) <= 0.05, results
