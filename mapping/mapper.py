@@ -79,10 +79,13 @@ class MapperConfig:
     depth_weight_ref_m: float | None = 1.5
     """Stereo depth noise grows with z^2: fuse each pixel with weight min(1, (ref / z)^2) so
     near observations dominate; None = uniform weights (sensor depth gets uniform weights)."""
-    mesh_min_weight: float = 0.2
+    mesh_min_weight: float = 0.3
     """Mesh only where every cube corner has fused weight above this (weights are 1 per
     keyframe up to 1.5 m, (1.5 / z)^2 beyond), which removes thin surfaces that one noisy far
-    depth map created; 0 keeps everything observed."""
+    depth map created; 0 keeps everything observed. On the 60 s synthetic room (81 swept
+    keyframes, ground-truth poses, 2 cm voxels; ``tools/bench_mapping``) the mean vertex error
+    / completion within 5 cm were 2.44 cm / 92.2 % at 0.2, 1.71 cm / 90.4 % at 0.3 and
+    1.24 cm / 85.4 % at 0.5."""
     keep_color: bool = False
     """Keep every keyframe's colour image so re-integration also moves colour (1 MB per 752x480
     keyframe); without it re-integration moves geometry only. Depth is always kept (float16,

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from slam.calibration import Calibration
@@ -137,6 +138,10 @@ def _finish(mapper: Any, request: _Finish) -> tuple[_MapperSummary, MeshSnapshot
 
 def _worker(calib: Calibration, cfg: MapperStageConfig, inbox: Any, outbox: Any) -> None:
     """The worker process: fuse keyframes, report, snapshot meshes, finish with mesh.ply."""
+    if cfg.sweep_threads > 1:
+        # The sweep's own threads take whole strips; OpenCV's pool inside each call on top of
+        # them only adds dispatch overhead (752x480, 64 planes, 2 views: 282-294 -> 270-276 ms).
+        cv2.setNumThreads(1)
     try:
         mapper = _make_mapper(calib, cfg)
     except Exception as exc:
