@@ -86,6 +86,10 @@ class MapperConfig:
     keyframes, ground-truth poses, 2 cm voxels; ``tools/bench_mapping``) the mean vertex error
     / completion within 5 cm were 2.44 cm / 92.2 % at 0.2, 1.71 cm / 90.4 % at 0.3 and
     1.24 cm / 85.4 % at 0.5."""
+    mesh_min_weight_keyframes: int = 3
+    """With fewer fused keyframes than this there is no multi-view support to ask for: the
+    mesh then keeps every observed surface (min weight 0) instead of coming out empty (a
+    single keyframe seeing walls beyond 2.7 m has weights below 0.3 everywhere)."""
     keep_color: bool = False
     """Keep every keyframe's colour image so re-integration also moves colour (1 MB per 752x480
     keyframe); without it re-integration moves geometry only. Depth is always kept (float16,
@@ -347,7 +351,13 @@ class DenseMapper:
     # --- outputs -------------------------------------------------------------------------------
     def mesh(self, min_weight: float | None = None) -> TriangleMesh:
         """Marching cubes over the fused volume (``min_weight``: see MapperConfig)."""
-        mw = self.config.mesh_min_weight if min_weight is None else min_weight
+        cfg = self.config
+        if min_weight is not None:
+            mw = min_weight
+        elif self.num_keyframes < cfg.mesh_min_weight_keyframes:
+            mw = 0.0
+        else:
+            mw = cfg.mesh_min_weight
         return extract_mesh(self.volume, min_weight=mw)
 
     def keyframe_depth(self, t_ns: int) -> np.ndarray:

@@ -105,3 +105,18 @@ def test_mapper_pickles_for_a_worker_process(room):
     clone = pickle.loads(pickle.dumps(mapper))
     assert clone.volume.num_blocks == mapper.volume.num_blocks
     assert clone.mesh().num_faces == mapper.mesh().num_faces
+
+
+def test_mesh_threshold_needs_multi_view_support(room):
+    """One fused keyframe meshes every observed surface; from mesh_min_weight_keyframes on, the
+    multi-view weight threshold applies (it removes single-view floaters)."""
+    scene, frames = room
+    mapper = make_mapper()
+    pose, img, right, _ = frames[0]
+    mapper.add_keyframe(0, img, right, pose)
+    assert mapper.mesh().num_vertices == mapper.mesh(0.0).num_vertices > 0
+    for i, (pose, img, right, _) in enumerate(frames[1:4], start=1):
+        mapper.add_keyframe(i * 100_000_000, img, right, pose)
+    assert mapper.num_keyframes >= mapper.config.mesh_min_weight_keyframes
+    thresholded = mapper.mesh(mapper.config.mesh_min_weight).num_vertices
+    assert mapper.mesh().num_vertices == thresholded < mapper.mesh(0.0).num_vertices
