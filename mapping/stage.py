@@ -48,7 +48,8 @@ class MapperStageConfig:
     num_planes: int = 96
     """Plane-sweep depth hypotheses (inverse-depth sampled)."""
     sweep_threads: int = 2
-    """Plane-sweep threads in the worker (it runs at nice 10, so it yields to tracking)."""
+    """Plane-sweep threads in the worker (a background process: SCHED_IDLE, see
+    ``player.idle_workers``, so it yields to tracking)."""
     max_backlog: int = 4
     """Keyframes waiting for the mapper; beyond that a keyframe is dropped (and counted)."""
     mesh_every_s: float = 5.0
