@@ -104,6 +104,8 @@ class TrackingResult:
     latency_ms: float  # front-end processing time of this frame
     image_left: np.ndarray | None = None  # for the viewer only (None when not logged)
     reason: str = ""  # why tracking was lost / what happened, for the log
+    cpu_ms: float = 0.0  # front-end thread CPU time of this frame (latency_ms minus waiting)
+    runqueue_ms: float = -1.0  # of the waiting, runnable without a CPU (-1: OS does not say)
 
 
 @dataclass(frozen=True)

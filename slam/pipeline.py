@@ -63,6 +63,8 @@ class Recorder:
         self.pose_segments: list[int] = []
         self.keyframes: list[tuple[int, np.ndarray]] = []
         self.frontend_latency_ms: list[float] = []
+        self.frontend_cpu_ms: list[float] = []
+        self.frontend_runqueue_ms: list[float] = []  # empty where the OS does not report it
         self.states: dict[str, int] = {}
         self.last_state = ""
         self.keyframe_times: dict[int, int] = {}
@@ -71,6 +73,9 @@ class Recorder:
     def add(self, res: TrackingResult) -> None:
         with self._lock:
             self.frontend_latency_ms.append(res.latency_ms)
+            self.frontend_cpu_ms.append(res.cpu_ms)
+            if res.runqueue_ms >= 0:
+                self.frontend_runqueue_ms.append(res.runqueue_ms)
             self.states[res.state] = self.states.get(res.state, 0) + 1
             self.last_state = res.state
             if res.world_from_body is not None:
@@ -95,6 +100,22 @@ class Recorder:
         """Map segment of each of the first ``n`` recorded poses (poses are only appended)."""
         with self._lock:
             return np.array(self.pose_segments[:n])
+
+    def frontend_breakdown(self) -> dict[str, dict[str, float]]:
+        """Latency summaries of the front end's CPU time, wait (latency - CPU) and, of that
+        wait, run-queue time (runnable without a CPU); the rest of the wait is the GIL or
+        sleeping (``slam.cputime``)."""
+        with self._lock:
+            lat = np.asarray(self.frontend_latency_ms)
+            cpu = np.asarray(self.frontend_cpu_ms)
+            rq = list(self.frontend_runqueue_ms)
+        out = {
+            "frontend_frame_cpu": latency_summary(cpu.tolist()),
+            "frontend_frame_wait": latency_summary(np.maximum(lat - cpu, 0.0).tolist()),
+        }
+        if rq:
+            out["frontend_frame_runqueue"] = latency_summary(rq)
+        return out
 
     def event(self, t_ns: int, text: str) -> None:
         with self._lock:
@@ -309,6 +330,7 @@ def run_slam(
             "sequential": sequential,
             "latency": {
                 "frontend_frame": latency_summary(lat),
+                **recorder.frontend_breakdown(),
                 **{f"stage_{s.name}": s.latency_stats() for s in stages},
             },
             "peak_rss_mb": peak_rss_mb(),

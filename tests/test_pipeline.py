@@ -59,6 +59,14 @@ def test_sequential_is_bit_identical_and_agrees_with_concurrent(short_seq, tmp_p
     np.testing.assert_array_equal(a.keyframes.t_ns, c.keyframes.t_ns)
     np.testing.assert_array_equal(a.trajectory.t_ns, c.trajectory.t_ns)
     np.testing.assert_allclose(a.trajectory.positions_m, c.trajectory.positions_m, atol=1e-6)
+    # the front end's latency splits into CPU time and waiting (run queue where Linux says)
+    lat = c.stats["latency"]
+    n = lat["frontend_frame"]["count"]
+    assert lat["frontend_frame_cpu"]["count"] == lat["frontend_frame_wait"]["count"] == n
+    assert 0 < lat["frontend_frame_cpu"]["p50_ms"] <= lat["frontend_frame"]["p50_ms"] + 0.5
+    if sys.platform.startswith("linux"):
+        rq = lat["frontend_frame_runqueue"]
+        assert rq["count"] == n and rq["max_ms"] >= 0
 
 
 def test_vo_accuracy_on_short_synthetic(short_seq):

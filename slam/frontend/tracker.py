@@ -24,6 +24,7 @@ import numpy as np
 
 from slam.calibration import Calibration
 from slam.config import FrontendConfig
+from slam.cputime import runqueue_wait_ns, thread_cpu_s
 from slam.frontend.features import build_pyramid, detect_features, track_klt
 from slam.frontend.stereo import StereoMatcher
 from slam.geometry import (
@@ -105,6 +106,8 @@ class FrontEnd:
         self.bias_gyro = np.zeros(3)
         self.latest_estimate: Estimate | None = None
         self._prior_cache: tuple[Estimate, int, np.ndarray, np.ndarray] | None = None
+        self._cpu_start_s = 0.0  # thread CPU time and run-queue wait when process() started
+        self._runqueue_start_ns: int | None = None
         self.gravity_m_s2 = calib.imu.gravity_m_s2 if calib.imu else 9.81
 
     # ------------------------------------------------------------------ feedback
@@ -160,6 +163,12 @@ class FrontEnd:
 
     def _result(self, frame: StereoFrame, state: str, t_start: float, **kw) -> TrackingResult:
         pose = kw.pop("world_from_body", None)
+        rq_now = runqueue_wait_ns()
+        runqueue_ms = (
+            -1.0
+            if rq_now is None or self._runqueue_start_ns is None
+            else (rq_now - self._runqueue_start_ns) * 1e-6
+        )
         return TrackingResult(
             t_ns=frame.t_ns,
             frame_index=frame.index,
@@ -175,6 +184,8 @@ class FrontEnd:
             latency_ms=(time.perf_counter() - t_start) * 1e3,
             image_left=frame.left,
             reason=kw.pop("reason", ""),
+            cpu_ms=(thread_cpu_s() - self._cpu_start_s) * 1e3,
+            runqueue_ms=runqueue_ms,
         )
 
     def _lose(self, frame: StereoFrame, t_start: float, reason: str) -> TrackingResult:
@@ -195,6 +206,8 @@ class FrontEnd:
     def process(self, frame: StereoFrame) -> tuple[TrackingResult, Keyframe | None]:
         """Track one frame. Returns the tracking result and a keyframe when one was made."""
         t_start = time.perf_counter()
+        self._cpu_start_s = thread_cpu_s()
+        self._runqueue_start_ns = runqueue_wait_ns()
         self.stats.frames += 1
         self._apply_estimate()
         image = frame.left
