@@ -232,6 +232,11 @@ def summarise(name: str, stats: dict[str, Any], acc: dict[str, Any]) -> dict[str
         "real_time_factor": stats.get("real_time_factor"),
         "frontend_p50_ms": fe.get("p50_ms"),
         "frontend_p99_ms": fe.get("p99_ms"),
+        # of the p99 frame time, how much a frame's CPU work and its run-queue wait take (p99s)
+        "frontend_cpu_p99_ms": stats.get("latency", {}).get("frontend_frame_cpu", {}).get("p99_ms"),
+        "frontend_runqueue_p99_ms": (
+            stats.get("latency", {}).get("frontend_frame_runqueue", {}).get("p99_ms")
+        ),
         "backend_p50_ms": (be.get("update") or {}).get("p50_ms"),
         "backend_p99_ms": (be.get("update") or {}).get("p99_ms"),
         "backend_resets": be.get("resets"),
