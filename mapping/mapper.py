@@ -37,7 +37,7 @@ from mapping.planesweep import (
 )
 from mapping.tsdf import TsdfConfig, TsdfVolume
 from slam.calibration import Calibration
-from slam.geometry import invert_transform, so3_log
+from slam.geometry import invert_transform, rotation_angle_rad
 
 
 @dataclass(frozen=True)
@@ -311,7 +311,7 @@ class DenseMapper:
     def _has_not_moved(self, world_from_cam0: np.ndarray) -> bool:
         last = self._keyframes[self._order[-1]].world_from_cam0
         delta = invert_transform(last) @ world_from_cam0
-        angle = float(np.degrees(np.linalg.norm(so3_log(delta[:3, :3]))))
+        angle = float(np.degrees(rotation_angle_rad(delta[:3, :3])))
         return bool(
             np.linalg.norm(delta[:3, 3]) < self.config.min_motion_m
             and angle < self.config.min_motion_deg
@@ -336,7 +336,7 @@ class DenseMapper:
             new_pose = np.asarray(new_pose, float)
             delta = invert_transform(kf.world_from_cam0) @ new_pose
             dt = float(np.linalg.norm(delta[:3, 3]))
-            dr = float(np.degrees(np.linalg.norm(so3_log(delta[:3, :3]))))
+            dr = float(np.degrees(rotation_angle_rad(delta[:3, :3])))
             if dt <= cfg.reintegrate_translation_m and dr <= cfg.reintegrate_rotation_deg:
                 kf.world_from_cam0 = new_pose
                 continue

@@ -122,6 +122,18 @@ def so3_exp_batch(omegas: np.ndarray) -> np.ndarray:
     return np.eye(3) + a[:, None, None] * k + b[:, None, None] * (k @ k)
 
 
+def rotation_angle_rad(rotation: np.ndarray) -> float:
+    """Angle (rad, in [0, pi]) of a 3x3 rotation matrix: the norm of its rotation vector.
+
+    ``atan2(|vee(R - R^T)| / 2, (trace R - 1) / 2)``: exact near 0 and near pi alike (an
+    arccos of the trace alone loses ~1e-8 rad near 0) and without building a scipy Rotation.
+    """
+    r = np.asarray(rotation, dtype=float)
+    sin = 0.5 * np.linalg.norm([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    cos = 0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0)
+    return float(np.arctan2(sin, cos))
+
+
 def so3_log(rotation: np.ndarray) -> np.ndarray:
     """Rotation vector (rad) of a rotation matrix."""
     from scipy.spatial.transform import Rotation

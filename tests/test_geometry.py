@@ -57,3 +57,14 @@ def test_calibration_dict_roundtrip():
     cal = Calibration((cam,), ImuCalibration(), 1234)
     back = Calibration.from_dict(cal.to_dict())
     assert back.to_dict() == cal.to_dict()
+
+
+def test_rotation_angle_matches_the_rotation_vector_norm():
+    from slam.geometry import rotation_angle_rad, so3_exp, so3_log
+
+    rng = np.random.default_rng(4)
+    for angle in (0.0, 1e-9, 1e-4, 0.3, 1.0, 2.5, np.pi - 1e-6):
+        axis = rng.normal(size=3)
+        rot = so3_exp(angle * axis / np.linalg.norm(axis))
+        assert abs(rotation_angle_rad(rot) - angle) < 1e-9
+        assert abs(rotation_angle_rad(rot) - np.linalg.norm(so3_log(rot))) < 1e-9

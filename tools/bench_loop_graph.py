@@ -36,10 +36,10 @@ def _mats(rows: list[list[float]]) -> np.ndarray:
 
 def _rel_error(measured: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     """(translation error m, rotation error deg) of two relative poses."""
-    from slam.geometry import invert_transform, so3_log
+    from slam.geometry import invert_transform, rotation_angle_rad
 
     d = invert_transform(truth) @ measured
-    return float(np.linalg.norm(d[:3, 3])), float(np.degrees(np.linalg.norm(so3_log(d[:3, :3]))))
+    return float(np.linalg.norm(d[:3, 3])), float(np.degrees(rotation_angle_rad(d[:3, :3])))
 
 
 def _ate(est: np.ndarray, ref: np.ndarray) -> float:

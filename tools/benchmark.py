@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from slam.errors import SlamError
+from slam.geometry import rotation_angle_rad
 
 SUITE_VERSION = 1
 
@@ -211,8 +212,7 @@ def false_loops(seq_path: Path, stats: dict[str, Any]) -> int | None:
         pa, ra = pose_at(int(loop["query_t_ns"]))
         pb, rb = pose_at(int(loop["match_t_ns"]))
         # EuRoC-style body: the camera looks along body x/z; compare all axes' agreement
-        cos = (np.trace(ra.T @ rb) - 1.0) / 2.0
-        angle_deg = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+        angle_deg = float(np.degrees(rotation_angle_rad(ra.T @ rb)))
         if np.linalg.norm(pa - pb) > 2.0 or angle_deg > 45.0:
             false += 1
     return false

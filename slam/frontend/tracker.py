@@ -32,6 +32,7 @@ from slam.geometry import (
     is_rigid,
     make_transform,
     nearest_rigid,
+    rotation_angle_rad,
     transform_points,
 )
 from slam.imu_buffer import ImuBuffer, integrate_gyro, propagate_pose
@@ -393,7 +394,7 @@ class FrontEnd:
         if reloc is not None and prior is not None:
             # A relocalisation that contradicts IMU dead reckoning over a short gap is an alias.
             delta = invert_transform(prior) @ np.asarray(reloc.world_from_body, dtype=float)
-            angle = np.arccos(np.clip((np.trace(delta[:3, :3]) - 1) / 2, -1.0, 1.0))
+            angle = rotation_angle_rad(delta[:3, :3])
             if np.linalg.norm(delta[:3, 3]) > 1.0 or angle > np.radians(20.0):
                 self.stats.state_log.append(
                     (frame.t_ns, "relocalisation rejected: it contradicts the IMU prior")

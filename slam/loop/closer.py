@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 from slam.calibration import Calibration
-from slam.geometry import invert_transform, so3_log
+from slam.geometry import invert_transform, rotation_angle_rad
 from slam.loop.config import LoopClosureConfig
 from slam.loop.database import LoopDetector, LoopDetectorParams
 from slam.loop.store import KeyframeDescription, KeyframeStore, describe_keyframe
@@ -50,10 +50,6 @@ from slam.posegraph import (
 )
 
 
-def _angle_rad(rotation: np.ndarray) -> float:
-    return float(np.linalg.norm(so3_log(rotation)))
-
-
 def odometry_sigmas(rel: np.ndarray, dt_s: float, cfg: LoopClosureConfig) -> tuple[float, float]:
     """(translation sigma m, rotation sigma rad) per axis of an odometry edge spanning
     ``rel`` (prev_from_next) and ``dt_s`` seconds.
@@ -62,7 +58,7 @@ def odometry_sigmas(rel: np.ndarray, dt_s: float, cfg: LoopClosureConfig) -> tup
     by IMU dead reckoning gets the large sigma it deserves) plus terms proportional to the
     distance travelled and the angle turned (scale and gyro scale errors)."""
     length = float(np.linalg.norm(rel[:3, 3]))
-    angle = _angle_rad(rel[:3, :3])
+    angle = rotation_angle_rad(rel[:3, :3])
     dt = max(float(dt_s), 0.0)
     sigma_m = float(
         np.sqrt(
@@ -445,7 +441,9 @@ class LoopCloser:
         implied_query = self.corrected_pose(match) @ measured
         current_query = self.corrected_pose(q)
         jump_m = float(np.linalg.norm(implied_query[:3, 3] - current_query[:3, 3]))
-        jump_deg = float(np.degrees(_angle_rad(current_query[:3, :3].T @ implied_query[:3, :3])))
+        jump_deg = float(
+            np.degrees(rotation_angle_rad(current_query[:3, :3].T @ implied_query[:3, :3]))
+        )
         q_seg, m_seg = self.segment_of[q], self.segment_of[match]
         c = self.cfg
         if q_seg == m_seg:
@@ -477,7 +475,7 @@ class LoopCloser:
             diff = invert_transform(pend.map_from_query_map) @ alignment
             if (
                 np.linalg.norm(diff[:3, 3]) <= c.confirm_translation_m
-                and np.degrees(_angle_rad(diff[:3, :3])) <= c.confirm_rotation_deg
+                and np.degrees(rotation_angle_rad(diff[:3, :3])) <= c.confirm_rotation_deg
             ):
                 self._pending = None
                 return self._accept([pend.record, record], kf.t_ns)

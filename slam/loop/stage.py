@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from slam.calibration import Calibration
-from slam.geometry import invert_transform, is_rigid
+from slam.geometry import invert_transform, is_rigid, rotation_angle_rad
 from slam.loop.closer import LoopCloser, LoopEvent, PgoOutcome, run_pgo
 from slam.loop.config import LoopClosureConfig
 from slam.loop.relocaliser import Relocaliser
@@ -109,8 +109,7 @@ class OdometryRefresher:
                 kid, pose, before = ids[i], poses[i], before_all[i]
                 self._seen[kid] = pose.copy()
                 jump = invert_transform(before) @ pose
-                cos = np.clip((np.trace(jump[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-                angle_deg = float(np.degrees(np.arccos(cos)))
+                angle_deg = float(np.degrees(rotation_angle_rad(jump[:3, :3])))
                 if np.linalg.norm(jump[:3, 3]) > FRAME_JUMP_M or angle_deg > FRAME_JUMP_DEG:
                     out[kid] = self.sent[kid] = np.array(pose, dtype=float)
                     self.frame_jumps += 1
