@@ -78,6 +78,29 @@ class Estimate:
     landmark_positions_world: np.ndarray  # (M, 3)
     map_generation: int = 0  # increments when a loop correction moves the whole map
 
+    @staticmethod
+    def pose_only(
+        t_ns: int,
+        keyframe_id: int,
+        world_from_body: np.ndarray,
+        initialized: bool,
+        map_generation: int = 0,
+    ) -> Estimate:
+        """An estimate of a pose alone: at rest, zero biases, no window keyframes or landmarks."""
+        return Estimate(
+            t_ns=t_ns,
+            keyframe_id=keyframe_id,
+            initialized=initialized,
+            world_from_body=world_from_body,
+            velocity_world_m_s=np.zeros(3),
+            bias_gyro_rad_s=np.zeros(3),
+            bias_accel_m_s2=np.zeros(3),
+            keyframe_poses={},
+            landmark_ids=np.zeros(0, np.int64),
+            landmark_positions_world=np.zeros((0, 3)),
+            map_generation=map_generation,
+        )
+
 
 @dataclass(frozen=True, eq=False)
 class TrackingResult:

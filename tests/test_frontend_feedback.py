@@ -43,18 +43,8 @@ def test_thousands_of_estimates_leave_keyframe_poses_rigid():
         noise = make_transform(
             so3_exp(rng.normal(scale=1e-3, size=3)), rng.normal(scale=1e-3, size=3)
         )
-        estimate = Estimate(
-            t_ns=i,
-            keyframe_id=kid,
-            initialized=True,
-            world_from_body=noise @ fe.kf_poses[kid],
-            velocity_world_m_s=np.zeros(3),
-            bias_gyro_rad_s=np.zeros(3),
-            bias_accel_m_s2=np.zeros(3),
-            keyframe_poses={},
-            landmark_ids=np.zeros(0, np.int64),
-            landmark_positions_world=np.zeros((0, 3)),
-            map_generation=i,
+        estimate = Estimate.pose_only(
+            i, kid, noise @ fe.kf_poses[kid], initialized=True, map_generation=i
         )
         fe._apply_estimate()
     worst = max(_orthonormality_error(p) for p in fe.kf_poses.values())
@@ -68,18 +58,7 @@ def test_an_estimate_that_is_not_a_rigid_pose_is_ignored():
     fe.world_from_body = np.eye(4)
     bad = np.eye(4)
     bad[:3, :3] *= 12.0
-    estimate = Estimate(
-        t_ns=5,
-        keyframe_id=0,
-        initialized=True,
-        world_from_body=bad,
-        velocity_world_m_s=np.zeros(3),
-        bias_gyro_rad_s=np.zeros(3),
-        bias_accel_m_s2=np.zeros(3),
-        keyframe_poses={},
-        landmark_ids=np.zeros(0, np.int64),
-        landmark_positions_world=np.zeros((0, 3)),
-    )
+    estimate = Estimate.pose_only(5, 0, bad, initialized=True)
     fe._apply_estimate()
     np.testing.assert_array_equal(fe.world_from_body, np.eye(4))
     assert any("not a rigid pose" in text for _, text in fe.stats.state_log)

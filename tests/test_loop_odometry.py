@@ -9,6 +9,12 @@ from slam.geometry import make_transform, so3_exp
 from slam.loop.stage import FULL_REFRESH_EVERY, REFRESH_LAST_KEYFRAMES, OdometryRefresher
 
 
+def _new_keyframe_along_x(ref: OdometryRefresher, poses: dict[int, np.ndarray], k: int) -> None:
+    """Keyframe ``k`` 0.1 k m along x, handed to the refresher as a new keyframe."""
+    poses[k] = make_transform(np.eye(3), [0.1 * k, 0.0, 0.0])
+    ref.new_keyframe(k, poses[k])
+
+
 def test_late_frame_change_reaches_old_keyframes() -> None:
     """A change of frame that arrives after the first keyframes left the recent window is
     still resent within FULL_REFRESH_EVERY keyframes."""
@@ -16,17 +22,15 @@ def test_late_frame_change_reaches_old_keyframes() -> None:
     ref = OdometryRefresher(poses.get)
     n_before = REFRESH_LAST_KEYFRAMES + 15
     for k in range(n_before):
-        poses[k] = make_transform(np.eye(3), [0.1 * k, 0.0, 0.0])
-        ref.refreshed()
-        ref.new_keyframe(k, poses[k])
+        ref.refreshed()  # (reads only keyframes already handed over, never k)
+        _new_keyframe_along_x(ref, poses, k)
     new_from_old = make_transform(so3_exp(np.array([0.0, np.pi / 2, 0.0])), [1.0, 2.0, 3.0])
     for k in poses:
         poses[k] = new_from_old @ poses[k]
     resent: dict[int, np.ndarray] = {}
     for k in range(n_before, n_before + FULL_REFRESH_EVERY):
         resent.update(ref.refreshed())
-        poses[k] = make_transform(np.eye(3), [0.1 * k, 0.0, 0.0])
-        ref.new_keyframe(k, poses[k])
+        _new_keyframe_along_x(ref, poses, k)
     assert set(range(n_before)) <= set(resent)
     np.testing.assert_allclose(resent[0], poses[0])
     # nothing changed since: nothing is resent
@@ -59,16 +63,14 @@ def test_small_drift_of_old_keyframes_is_not_resent() -> None:
     ref = OdometryRefresher(poses.get)
     n = REFRESH_LAST_KEYFRAMES + 5
     for k in range(n):
-        poses[k] = make_transform(np.eye(3), [0.1 * k, 0.0, 0.0])
-        ref.refreshed()
-        ref.new_keyframe(k, poses[k])
+        ref.refreshed()  # (reads only keyframes already handed over, never k)
+        _new_keyframe_along_x(ref, poses, k)
     original = poses[0].copy()
     resent: set[int] = set()
     for k in range(n, n + 10 * FULL_REFRESH_EVERY):
         poses[0] = make_transform(np.eye(3), [0.0, 0.002, 0.0]) @ poses[0]  # 2 mm per keyframe
         resent |= set(ref.refreshed())
-        poses[k] = make_transform(np.eye(3), [0.1 * k, 0.0, 0.0])
-        ref.new_keyframe(k, poses[k])
+        _new_keyframe_along_x(ref, poses, k)
     assert 0 not in resent
     np.testing.assert_allclose(ref.sent[0], original)
     assert ref.frame_jumps == 0

@@ -173,18 +173,7 @@ class VioBackend:
         self._culled: set[int] = set()
         self._last_good: _GoodState | None = None
         self._t_origin_ns: int | None = None
-        self._estimate = Estimate(
-            t_ns=0,
-            keyframe_id=-1,
-            initialized=False,
-            world_from_body=np.eye(4),
-            velocity_world_m_s=np.zeros(3),
-            bias_gyro_rad_s=np.zeros(3),
-            bias_accel_m_s2=np.zeros(3),
-            keyframe_poses={},
-            landmark_ids=np.zeros(0, np.int64),
-            landmark_positions_world=np.zeros((0, 3)),
-        )
+        self._estimate = Estimate.pose_only(0, -1, np.eye(4), initialized=False)
 
     # --- public API ------------------------------------------------------------------------------
     @property
