@@ -365,11 +365,31 @@ def run_slam(
         """The loop-closed trajectory (every frame through its keyframe's correction)."""
         if loop_stage is None or len(traj) == 0:
             return {}
+        from slam.geometry import invert_transform
         from slam.loop.closer import loop_closed_poses
 
-        corrections = loop_stage.keyframe_corrections()
+        corrections = dict(loop_stage.keyframe_corrections())
+        corrected = loop_stage.corrected_keyframe_poses()
         t_ns_of, segment_of = loop_stage.keyframe_times_and_segments()
         kids = [k for k in corrections if k in t_ns_of]
+        if backend is not None and backend.keyframe_poses:
+            # Keyframes from before the back end's initialisation only have the front end's
+            # pre-gravity-alignment pose, and their odometry edge carries the change of frame
+            # (measured on room-figure8: kf 0 and 1 corrected 41 mm off): frames of that time
+            # follow the first initialised keyframe instead.
+            initialised = dict(backend.keyframe_poses)
+            kids = [k for k in kids if k in initialised] or kids
+        # A keyframe's correction relative to the *output* pose of its own frame where there is
+        # one: frames then follow their keyframe by the causal relative motion they were tracked
+        # with. (Relative to the keyframe's back-end pose, each frame also carried the
+        # difference between the causal and the smoothed estimate of the keyframe: measured
+        # on room-figure8 after global BA, 5.6 mm frame ATE against 4.0 mm for the keyframes.)
+        frame_at = {int(t): i for i, t in enumerate(traj.t_ns.tolist())}
+        frame_poses = traj.matrices()
+        for k in kids:
+            i = frame_at.get(int(t_ns_of[k]))
+            if i is not None and k in corrected:
+                corrections[k] = corrected[k] @ invert_transform(frame_poses[i])
         kf_t = np.array([t_ns_of[k] for k in kids], dtype=np.int64)
         kf_seg = np.array([segment_of[k] for k in kids])
         if not kids:

@@ -35,6 +35,12 @@ from slam.calibration import Calibration
 from slam.geometry import invert_transform, rotation_angle_rad
 from slam.loop.config import LoopClosureConfig
 from slam.loop.database import LoopDetector, LoopDetectorParams
+from slam.loop.global_ba import (
+    GlobalBaParams,
+    GlobalBaResult,
+    KeyframeObservations,
+    global_bundle_adjustment,
+)
 from slam.loop.store import KeyframeDescription, KeyframeStore, describe_keyframe
 from slam.loop.verify import LoopVerification, VerifyParams, verify_loop, verify_loop_landmarks
 from slam.loop.vocabulary import Vocabulary, load_default_vocabulary
@@ -155,6 +161,7 @@ class LoopRecord:
     t_ns: int
     active: bool = True  # False once PGO's robust kernel rejected it
     method: str = "landmarks"  # how it was verified: "landmarks" or "orb" (see _verify)
+    landmark_pairs: np.ndarray | None = None  # (M, 2) query / match landmark ids it matched
 
 
 @dataclass(frozen=True, eq=False)
@@ -279,6 +286,8 @@ class LoopCloser:
         self._last_accept_count = -(10**9)
         self._pending: _Pending | None = None
         self._last_correction: LoopCorrection | None = None
+        self.observations: dict[int, KeyframeObservations] = {}  # for the global adjustment
+        self.global_ba: GlobalBaResult | None = None
 
     # ------------------------------------------------------------------ poses
     def _root(self, seg: int) -> int:
@@ -325,6 +334,8 @@ class LoopCloser:
         self.stats.describe_ms.append((time.perf_counter() - t0) * 1e3)
         self._add_node(kf, world_from_body_odom)
         self.store.add_description(desc, world_from_body_odom)
+        if self.cfg.global_ba:
+            self.observations[kf.keyframe_id] = self._observations(kf)
         covisible_from = min(
             (self.first_kf_of_landmark.get(int(i), kf.keyframe_id) for i in desc.landmark_ids),
             default=kf.keyframe_id,
@@ -429,6 +440,15 @@ class LoopCloser:
             return LoopEvent(kf.t_ns, q, candidates[0], "rejected", "verification failed", 0)
         self.stats.verified += 1
         measured = self.body_from_cam0 @ ver.candidate_cam_from_query_cam @ self.cam0_from_body
+        pairs = None
+        if method == "landmarks":
+            pairs = np.stack(
+                [
+                    desc.landmark_ids[ver.query_indices],
+                    self.store.description(match).landmark_ids[ver.candidate_indices],
+                ],
+                axis=1,
+            )
         record = LoopRecord(
             loop_id=-1,  # numbered when accepted
             query_kf_id=q,
@@ -437,6 +457,7 @@ class LoopCloser:
             inliers=ver.num_inliers,
             t_ns=kf.t_ns,
             method=method,
+            landmark_pairs=pairs,
         )
         implied_query = self.corrected_pose(match) @ measured
         current_query = self.corrected_pose(q)
@@ -568,15 +589,7 @@ class LoopCloser:
         nodes = self._members(root)
         node_set = set(nodes)
         poses = {k: self.corrected_pose(k) for k in nodes}
-        odo: list[PoseEdge] = []
-        for k in nodes:
-            prev = self.prev_in_segment.get(k)
-            if prev is None:
-                continue
-            rel = invert_transform(self.odom[prev]) @ self.odom[k]
-            dt_s = (self.t_ns_of[k] - self.t_ns_of[prev]) * 1e-9
-            sigma_m, sigma_rad = odometry_sigmas(rel, dt_s, c)
-            odo.append(PoseEdge(prev, k, rel, information_from_sigmas(sigma_m, sigma_rad)))
+        odo = self._odometry_edges(nodes)
         loops = [r for r in active if r.query_kf_id in node_set and r.match_kf_id in node_set]
         self._request_id += 1
         self.needs_pgo = False
@@ -598,6 +611,79 @@ class LoopCloser:
             robust=c.robust,
             robust_threshold=robust_threshold(c),
         )
+
+    def _odometry_edges(self, nodes: list[int]) -> list[PoseEdge]:
+        """Odometry edges between consecutive keyframes of a segment, among ``nodes``."""
+        odo: list[PoseEdge] = []
+        for k in nodes:
+            prev = self.prev_in_segment.get(k)
+            if prev is None:
+                continue
+            rel = invert_transform(self.odom[prev]) @ self.odom[k]
+            dt_s = (self.t_ns_of[k] - self.t_ns_of[prev]) * 1e-9
+            sigma_m, sigma_rad = odometry_sigmas(rel, dt_s, self.cfg)
+            odo.append(PoseEdge(prev, k, rel, information_from_sigmas(sigma_m, sigma_rad)))
+        return odo
+
+    def _observations(self, kf: Keyframe) -> KeyframeObservations:
+        """The keyframe's observations, landmarks moved into its cam0 frame."""
+        cam_from_world = invert_transform(
+            np.asarray(kf.world_from_body_vo, dtype=float) @ self.body_from_cam0
+        )
+        pts = np.asarray(kf.points_world_vo, dtype=float).reshape(-1, 3)
+        return KeyframeObservations(
+            landmark_ids=np.asarray(kf.landmark_ids, dtype=np.int64).copy(),
+            left_px=np.asarray(kf.pixels_left_undist, dtype=float).copy(),
+            right_px=np.asarray(kf.pixels_right_undist, dtype=float).copy(),
+            points_cam0=pts @ cam_from_world[:3, :3].T + cam_from_world[:3, 3],
+        )
+
+    def global_adjustment(self) -> GlobalBaResult | None:
+        """Global bundle adjustment (:mod:`slam.loop.global_ba`) of the component holding the
+        newest active loop, starting from the pose graph's result; its keyframe poses replace
+        the corrected ones. None (nothing changed) without an active loop or when disabled."""
+        active = [r for r in self.loops if r.active]
+        if not self.cfg.global_ba or not active:
+            return None
+        root = self._root(self.segment_of[active[-1].query_kf_id])
+        nodes = self._members(root)
+        node_set = set(nodes)
+        pairs = [
+            (r.query_kf_id, int(a), r.match_kf_id, int(b))
+            for r in active
+            if r.landmark_pairs is not None
+            and r.query_kf_id in node_set
+            and r.match_kf_id in node_set
+            for a, b in r.landmark_pairs.tolist()
+        ]
+        c = self.cfg
+        result = global_bundle_adjustment(
+            self.calib,
+            self.observations,
+            {k: self.corrected_pose(k) for k in nodes},
+            self._odometry_edges(nodes),
+            pairs,
+            fixed_id=min(nodes),
+            keyframe_t_ns=self.t_ns_of,
+            params=GlobalBaParams(
+                pixel_sigma_px=c.global_ba_pixel_sigma_px,
+                odometry_sigma_scale=c.global_ba_odometry_sigma_scale,
+            ),
+        )
+        if result is None:
+            return None
+        newest: dict[int, int] = {}
+        for k, pose in result.world_from_body.items():
+            self.optimised[k] = np.array(pose, dtype=float)
+            seg = self.segment_of[k]
+            if k > newest.get(seg, -1):
+                newest[seg] = k
+        for seg, k in newest.items():
+            self.map_from_odom[seg] = self.optimised[k] @ invert_transform(self.odom[k])
+        self.map_generation += 1
+        self.store.set_corrected(self.corrected_poses())
+        self.global_ba = result
+        return result
 
     def apply_pgo(self, outcome: PgoOutcome) -> LoopCorrection:
         """Take an optimisation's result: new keyframe poses, per-segment ``map_from_odom``

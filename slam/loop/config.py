@@ -82,6 +82,15 @@ class LoopClosureConfig:
     (GNC: inlier chi2 bound 16.8 x scale^2). The sigmas model VIO drift, and scaling them all
     leaves the optimum unchanged; but a true loop after more drift than that (stereo VO
     without IMU, a dead-reckoned gap) must survive, while false loops metres off still fail."""
+    global_ba: bool = True
+    """At the end of a run with loops, re-estimate every keyframe and landmark together, with
+    the landmarks the loops matched fused (``slam.loop.global_ba``): the loop-closed trajectory
+    then no longer inherits the first pass's odometry error."""
+    global_ba_pixel_sigma_px: float = 1.0
+    """Reprojection sigma of the global adjustment, pixels."""
+    global_ba_odometry_sigma_scale: float = 0.3
+    """The odometry edges enter the global adjustment with their pose-graph sigmas times this
+    (0: left out)."""
     pgo_process: bool = True
     """Run pose-graph optimisation in a worker process (GTSAM holds the GIL)."""
     reloc_candidates: int = 3

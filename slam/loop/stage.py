@@ -232,6 +232,8 @@ class LoopClosureStage(Stage):
                 time.sleep(0.005)
         if self._executor is not None:
             self._executor.shutdown(wait=True, cancel_futures=True)
+        with self._lock:
+            self.closer.global_adjustment()
 
     def abort(self) -> None:
         super().abort()
@@ -257,6 +259,8 @@ class LoopClosureStage(Stage):
         with self._lock:
             out: dict[str, Any] = dict(self.closer.stats.summary())
             out["mode"] = "process" if self.use_process else "inline"
+            ba = self.closer.global_ba
+            out["global_ba"] = None if ba is None else ba.summary()
             out["loops"] = [
                 {
                     "loop_id": r.loop_id,

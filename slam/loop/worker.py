@@ -94,8 +94,10 @@ def _worker(calib: Calibration, cfg: LoopClosureConfig, inbox: Any, outbox: Any)
         except Exception as exc:  # reported by the stage with its name
             outbox.put(RuntimeError(f"{type(exc).__name__}: {exc}"))
             return
+    ba = closer.global_adjustment()
     summary = dict(closer.stats.summary())
     summary["mode"] = "worker process"
+    summary["global_ba"] = None if ba is None else ba.summary()
     summary["loops"] = [
         {
             "loop_id": r.loop_id,
