@@ -638,6 +638,20 @@ class LoopCloser:
             points_cam0=pts @ cam_from_world[:3, :3].T + cam_from_world[:3, 3],
         )
 
+    def _set_optimised(self, world_from_body: dict[int, np.ndarray]) -> None:
+        """Take optimised keyframe poses; each segment's ``map_from_odom`` from its newest
+        optimised keyframe; a new map generation."""
+        newest: dict[int, int] = {}
+        for k, pose in world_from_body.items():
+            self.optimised[k] = np.array(pose, dtype=float)
+            seg = self.segment_of[k]
+            if k > newest.get(seg, -1):
+                newest[seg] = k
+        for seg, k in newest.items():
+            self.map_from_odom[seg] = self.optimised[k] @ invert_transform(self.odom[k])
+        self.map_generation += 1
+        self.store.set_corrected(self.corrected_poses())
+
     def global_adjustment(self) -> GlobalBaResult | None:
         """Global bundle adjustment (:mod:`slam.loop.global_ba`) of the component holding the
         newest active loop, starting from the pose graph's result; its keyframe poses replace
@@ -672,16 +686,7 @@ class LoopCloser:
         )
         if result is None:
             return None
-        newest: dict[int, int] = {}
-        for k, pose in result.world_from_body.items():
-            self.optimised[k] = np.array(pose, dtype=float)
-            seg = self.segment_of[k]
-            if k > newest.get(seg, -1):
-                newest[seg] = k
-        for seg, k in newest.items():
-            self.map_from_odom[seg] = self.optimised[k] @ invert_transform(self.odom[k])
-        self.map_generation += 1
-        self.store.set_corrected(self.corrected_poses())
+        self._set_optimised(result.world_from_body)
         self.global_ba = result
         return result
 
@@ -696,16 +701,7 @@ class LoopCloser:
             if not ok and by_id[lid].active:
                 by_id[lid].active = False
                 self.stats.rejected_by_pgo += 1
-        newest: dict[int, int] = {}
-        for k, pose in outcome.world_from_node.items():
-            self.optimised[k] = np.array(pose, dtype=float)
-            seg = self.segment_of[k]
-            if k > newest.get(seg, -1):
-                newest[seg] = k
-        for seg, k in newest.items():
-            self.map_from_odom[seg] = self.optimised[k] @ invert_transform(self.odom[k])
-        self.map_generation += 1
-        self.store.set_corrected(self.corrected_poses())
+        self._set_optimised(outcome.world_from_node)
         last = max((r for r in self.loops if r.active), key=lambda r: r.loop_id, default=None)
         correction = LoopCorrection(
             t_ns=self.t_ns_of[self.kf_ids[-1]],
