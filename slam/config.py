@@ -34,6 +34,12 @@ class FrontendConfig:
     """Minimum distance between features, pixels."""
     corner_quality: float = 0.01
     """goodFeaturesToTrack quality level."""
+    corner_subpixel: bool = True
+    """Refine new corners to sub-pixel at full resolution (``cv2.cornerSubPix``). Detection
+    runs at half resolution, so unrefined corners sit on a 2-pixel lattice: a place seen
+    again gets a corner up to a pixel away from the first visit's, and the landmarks loop
+    closure fuses across visits disagreed by 0.5 px RMS (measured on room-figure8 with
+    ground-truth poses, against 0.15 px within visits)."""
     klt_window_px: int = 21
     """KLT window side, pixels (17 was ~20% cheaper but lost track on the aggressive profile)."""
     klt_pyramid_levels: int = 3

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from slam.evaluation.align import umeyama
-from slam.geometry import invert_transform, make_transform, so3_exp
+from slam.geometry import invert_transform, make_transform, rotation_angle_rad, so3_exp
 from slam.loop.closer import LoopCloser, loop_closed_poses
 from slam.loop.config import LoopClosureConfig
 from slam.loop.synthetic import Drift, SyntheticKeyframe, ground_truth_keyframes
@@ -90,9 +90,47 @@ def test_loop_closed_frame_poses_follow_keyframes(loop_scene, closed) -> None:
     corrected = closer.corrected_poses()
     for n, s in enumerate(kfs):
         np.testing.assert_allclose(out[n], corrected[s.keyframe.keyframe_id], atol=1e-9)
-    # a frame 0.3 s after a keyframe uses that keyframe's correction
-    later = loop_closed_poses(kt[5:6] + 300_000_000, ks[:1], odom[5:6], kt, ks, km)
+    # without interpolation a frame 0.3 s after a keyframe uses that keyframe's correction
+    t_later = kt[5:6] + 300_000_000
+    later = loop_closed_poses(t_later, ks[:1], odom[5:6], kt, ks, km, interpolate=False)
     np.testing.assert_allclose(later[0], km[5] @ odom[5], atol=1e-9)
+    # interpolated: a correction between keyframe 5's and 6's, moving its position by the same
+    # fraction of the way (keyframes 1 s apart, so 30%) and rotating it part of the way
+    mid = loop_closed_poses(t_later, ks[:1], odom[5:6], kt, ks, km)[0]
+    alpha = 0.3e9 / (kt[6] - kt[5])
+    p5, p6 = (km[5] @ odom[5])[:3, 3], (km[6] @ odom[5])[:3, 3]
+    np.testing.assert_allclose(mid[:3, 3], p5 + alpha * (p6 - p5), atol=1e-4)
+    r_5_mid = np.degrees(
+        rotation_angle_rad((km[5][:3, :3]).T @ (mid @ invert_transform(odom[5]))[:3, :3])
+    )
+    r_5_6 = np.degrees(rotation_angle_rad(km[5][:3, :3].T @ km[6][:3, :3]))
+    assert abs(r_5_mid - alpha * r_5_6) < 1e-6 * max(1.0, r_5_6)
+    # and a frame after the last keyframe keeps the last correction
+    end = loop_closed_poses(kt[-1:] + 10**9, ks[:1], odom[-1:], kt, ks, km)
+    np.testing.assert_allclose(end[0], km[-1] @ odom[-1], atol=1e-9)
+
+
+def test_fusion_search_links_the_same_points_across_passes(loop_scene, closed) -> None:
+    """The global adjustment's fusion search matches keyframes of the revisit against the first
+    lap near them (more keyframe pairs than the loops themselves); every fused landmark pair
+    is the same physical point, and no pair lies within one pass."""
+    _, kfs = loop_scene
+    closer, _ = closed
+    truth = {s.keyframe.keyframe_id: s.world_from_body_true for s in kfs}
+    pairs = closer._fusion_pairs(list(truth))
+    kf_pairs = {(q, m) for q, _, m, _ in pairs}
+    assert len(kf_pairs) > len(closer.loops) >= 1
+    gap_ns = closer.cfg.global_ba_fusion_min_gap_s * 1e9
+    assert all(closer.t_ns_of[q] - closer.t_ns_of[m] >= gap_ns for q, m in kf_pairs)
+
+    def world_point(kf: int, lid: int) -> np.ndarray:
+        d = closer.store.description(kf)
+        p_cam = d.landmark_points_cam[np.flatnonzero(d.landmark_ids == lid)[0]]
+        world_from_cam = truth[kf] @ closer.body_from_cam0
+        return world_from_cam[:3, :3] @ p_cam + world_from_cam[:3, 3]
+
+    dist = np.array([np.linalg.norm(world_point(q, a) - world_point(m, b)) for q, a, m, b in pairs])
+    assert np.median(dist) < 0.01 and np.percentile(dist, 99) < 0.05, np.percentile(dist, [50, 99])
 
 
 def test_implausible_loop_rejected_by_gate(loop_scene, vocab) -> None:

@@ -7,6 +7,8 @@ import numpy as np
 
 from slam.config import FrontendConfig
 
+_SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 10, 0.01)
+
 
 def detect_features(
     image: np.ndarray,
@@ -45,6 +47,9 @@ def detect_features(
     if corners is None:
         return np.zeros((0, 2), dtype=np.float32)
     corners = corners.reshape(-1, 2) * 2.0 + 0.5  # pyrDown pixel centres -> full resolution
+    corners = np.ascontiguousarray(corners, dtype=np.float32)
+    if cfg.corner_subpixel and len(corners):
+        cv2.cornerSubPix(image, corners, (3, 3), (-1, -1), _SUBPIX_CRITERIA)
     corners[:, 0] = np.clip(corners[:, 0], 0, w - 1)
     corners[:, 1] = np.clip(corners[:, 1], 0, h - 1)
     # Bucketing, strongest first (goodFeaturesToTrack sorts by response): rank of each corner

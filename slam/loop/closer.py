@@ -25,6 +25,7 @@ outcome back with :meth:`LoopCloser.apply_pgo`.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
@@ -32,7 +33,7 @@ import cv2
 import numpy as np
 
 from slam.calibration import Calibration
-from slam.geometry import invert_transform, rotation_angle_rad
+from slam.geometry import invert_transform, make_transform, rotation_angle_rad, so3_exp, so3_log
 from slam.loop.config import LoopClosureConfig
 from slam.loop.database import LoopDetector, LoopDetectorParams
 from slam.loop.global_ba import (
@@ -671,6 +672,13 @@ class LoopCloser:
             for a, b in r.landmark_pairs.tolist()
         ]
         c = self.cfg
+        t0 = time.perf_counter()
+        fusion_pairs = 0
+        if c.global_ba_fusion:
+            found = self._fusion_pairs(nodes)
+            fusion_pairs = len({(qk, mk) for qk, _, mk, _ in found})
+            pairs += found
+        fusion_s = time.perf_counter() - t0
         result = global_bundle_adjustment(
             self.calib,
             self.observations,
@@ -686,9 +694,80 @@ class LoopCloser:
         )
         if result is None:
             return None
+        result = dataclasses.replace(
+            result, fusion_keyframe_pairs=fusion_pairs, fusion_seconds=fusion_s
+        )
         self._set_optimised(result.world_from_body)
         self.global_ba = result
         return result
+
+    def _fusion_pairs(self, nodes: list[int]) -> list[tuple[int, int, int, int]]:
+        """Landmark pairs (keyframe, landmark, keyframe, landmark) between each keyframe and
+        up to ``global_ba_fusion_candidates`` older keyframes of other passes near its
+        corrected pose (one per pass), matched landmark to landmark like a loop and kept only
+        when the match's relative pose agrees with the corrected poses (ORB-SLAM's loop
+        fusion: the revisit then shares landmarks with the first pass everywhere, not only at
+        the few keyframes where a loop was accepted)."""
+        c = self.cfg
+        ids = [k for k in sorted(nodes) if self.store.has(k)]
+        if len(ids) < 2:
+            return []
+        world_from_cam = np.array([self.corrected_pose(k) @ self.body_from_cam0 for k in ids])
+        pos = world_from_cam[:, :3, 3]
+        view = world_from_cam[:, :3, 2]
+        t_s = np.array([self.t_ns_of[k] for k in ids], dtype=float) * 1e-9
+        cos_max = np.cos(np.radians(c.global_ba_fusion_angle_deg))
+        out: list[tuple[int, int, int, int]] = []
+        for i, q in enumerate(ids):
+            older = np.flatnonzero(t_s < t_s[i] - c.global_ba_fusion_min_gap_s)
+            if not len(older):
+                continue
+            dist = np.linalg.norm(pos[older] - pos[i], axis=1)
+            cos = view[older] @ view[i]
+            ok = (dist <= c.global_ba_fusion_radius_m) & (cos >= cos_max)
+            older, dist, cos = older[ok], dist[ok], cos[ok]
+            score = dist / c.global_ba_fusion_radius_m + (1.0 - cos) / (1.0 - cos_max)
+            chosen: list[int] = []
+            for j in older[np.argsort(score, kind="stable")].tolist():
+                if len(chosen) >= c.global_ba_fusion_candidates:
+                    break
+                if any(abs(t_s[j] - t_s[o]) < c.global_ba_fusion_min_gap_s for o in chosen):
+                    continue  # one candidate per pass
+                chosen.append(j)
+            qd = self.store.description(q)
+            for j in chosen:
+                m = ids[j]
+                md = self.store.description(m)
+                if len(qd.landmark_xy_undist) != len(qd.landmark_desc) or len(
+                    md.landmark_xy_undist
+                ) != len(md.landmark_desc):
+                    continue
+                ver = verify_loop_landmarks(
+                    qd.landmark_xy_undist,
+                    qd.landmark_desc,
+                    qd.landmark_points_cam,
+                    md.landmark_xy_undist,
+                    md.landmark_desc,
+                    md.landmark_points_cam,
+                    self.K,
+                    self.verify_params,
+                )
+                if ver is None:
+                    continue
+                measured = (
+                    self.body_from_cam0 @ ver.candidate_cam_from_query_cam @ self.cam0_from_body
+                )
+                expected = invert_transform(self.corrected_pose(m)) @ self.corrected_pose(q)
+                diff = invert_transform(expected) @ measured
+                if (
+                    np.linalg.norm(diff[:3, 3]) > c.global_ba_fusion_gate_m
+                    or np.degrees(rotation_angle_rad(diff[:3, :3])) > c.global_ba_fusion_gate_deg
+                ):
+                    continue
+                qa = qd.landmark_ids[ver.query_indices].tolist()
+                mb = md.landmark_ids[ver.candidate_indices].tolist()
+                out += [(q, int(a), m, int(b)) for a, b in zip(qa, mb, strict=True)]
+        return out
 
     def apply_pgo(self, outcome: PgoOutcome) -> LoopCorrection:
         """Take an optimisation's result: new keyframe poses, per-segment ``map_from_odom``
@@ -758,9 +837,17 @@ def loop_closed_poses(
     keyframe_t_ns: np.ndarray,
     keyframe_segment_ids: np.ndarray,
     keyframe_map_from_odom: np.ndarray,
+    interpolate: bool = True,
 ) -> np.ndarray:
-    """Map every frame's odometry pose through the correction of the latest keyframe of its
-    segment at or before it (frames before their segment's first keyframe use that one).
+    """Map every frame's odometry pose through its segment's keyframe corrections.
+
+    With ``interpolate`` a frame between two keyframes of its segment takes the correction
+    interpolated in time between theirs (rotation along the geodesic, translation linearly);
+    otherwise, and before the first / after the last keyframe, the correction of the latest
+    keyframe at or before it (the first one before it). Why interpolate: the corrections of
+    consecutive keyframes differ by the smoothing the adjustment did, and holding each one
+    until the next keyframe left a step there (measured on room-figure8 after the global
+    adjustment: frames 4.6 mm ATE, keyframes 3.1 mm).
 
     Arrays: frames (N,), (N,), (N, 4, 4); keyframes (M,), (M,), (M, 4, 4) correction =
     corrected keyframe pose @ inverse(its odometry pose). Returns (N, 4, 4).
@@ -768,13 +855,30 @@ def loop_closed_poses(
     out = np.array(frame_world_from_body, dtype=float, copy=True)
     kt = np.asarray(keyframe_t_ns, dtype=np.int64)
     ks = np.asarray(keyframe_segment_ids)
+    corr = np.asarray(keyframe_map_from_odom, dtype=float)
+    ft = np.asarray(frame_t_ns, dtype=np.int64)
     for seg in np.unique(frame_segment_ids):
         fm = np.flatnonzero(frame_segment_ids == seg)
         km = np.flatnonzero(ks == seg)
         if not len(km):
             continue
         order = km[np.argsort(kt[km], kind="stable")]
-        pos = np.searchsorted(kt[order], np.asarray(frame_t_ns)[fm], side="right") - 1
-        pos = np.clip(pos, 0, len(order) - 1)
-        out[fm] = np.asarray(keyframe_map_from_odom)[order[pos]] @ out[fm]
+        times = kt[order]
+        pos = np.clip(np.searchsorted(times, ft[fm], side="right") - 1, 0, len(order) - 1)
+        for n, f in enumerate(fm.tolist()):
+            c = corr[order[pos[n]]]
+            nxt = pos[n] + 1
+            if interpolate and nxt < len(order) and times[pos[n]] <= ft[f] < times[nxt]:
+                c = _interpolate_transform(
+                    c,
+                    corr[order[nxt]],
+                    (ft[f] - times[pos[n]]) / max(int(times[nxt] - times[pos[n]]), 1),
+                )
+            out[f] = c @ out[f]
     return out
+
+
+def _interpolate_transform(a: np.ndarray, b: np.ndarray, alpha: float) -> np.ndarray:
+    """a at alpha 0, b at 1: rotation along the geodesic, translation linearly."""
+    rot = a[:3, :3] @ so3_exp(alpha * so3_log(a[:3, :3].T @ b[:3, :3]))
+    return make_transform(rot, (1.0 - alpha) * a[:3, 3] + alpha * b[:3, 3])

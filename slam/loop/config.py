@@ -91,6 +91,23 @@ class LoopClosureConfig:
     global_ba_odometry_sigma_scale: float = 0.3
     """The odometry edges enter the global adjustment with their pose-graph sigmas times this
     (0: left out)."""
+    global_ba_fusion: bool = True
+    """Before the global adjustment, match every keyframe landmark to landmark against the
+    keyframes of *other passes* near its corrected pose (ORB-SLAM's loop fusion), so the
+    adjustment fuses the revisits' landmarks everywhere and not only at the loops."""
+    global_ba_fusion_radius_m: float = 0.5
+    """Fusion candidates: corrected positions at most this far apart ..."""
+    global_ba_fusion_angle_deg: float = 30.0
+    """... viewing directions (camera z) at most this many degrees apart ..."""
+    global_ba_fusion_min_gap_s: float = 3.0
+    """... and at least this far apart in time (another pass, not the same track)."""
+    global_ba_fusion_candidates: int = 2
+    """Per keyframe, match at most this many candidates, each from a different pass."""
+    global_ba_fusion_gate_m: float = 0.1
+    """A fusion match is kept only when its relative pose agrees with the corrected poses
+    within this translation ..."""
+    global_ba_fusion_gate_deg: float = 3.0
+    """... and this rotation."""
     pgo_process: bool = True
     """Run pose-graph optimisation in a worker process (GTSAM holds the GIL)."""
     reloc_candidates: int = 3
