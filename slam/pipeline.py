@@ -259,6 +259,10 @@ def run_slam(
             pose = None if backend is None else backend.keyframe_poses.get(kid)
             return pose if pose is not None else frontend.kf_poses.get(kid)
 
+        def smoothed(kid: int) -> bool:
+            """Whether the back end estimated the keyframe (after its initialisation)."""
+            return backend is None or kid in backend.keyframe_poses
+
         loop_stage = (
             LoopClosureWorkerStage(
                 seq.calibration,
@@ -266,10 +270,16 @@ def run_slam(
                 odometry_pose,
                 on_loop_correction,
                 cfg.player.idle_workers,
+                smoothed,
             )
             if threaded
             else LoopClosureStage(
-                seq.calibration, cfg.loop, odometry_pose, on_loop_correction, threaded
+                seq.calibration,
+                cfg.loop,
+                odometry_pose,
+                on_loop_correction,
+                threaded,
+                smoothed=smoothed,
             )
         )
         loop_stage.nice = 10  # background work: never at the front end's expense

@@ -6,7 +6,12 @@ from __future__ import annotations
 import numpy as np
 
 from slam.geometry import make_transform, so3_exp
-from slam.loop.stage import FULL_REFRESH_EVERY, REFRESH_LAST_KEYFRAMES, OdometryRefresher
+from slam.loop.stage import (
+    FULL_REFRESH_EVERY,
+    REFRESH_LAST_KEYFRAMES,
+    OdometryRefresher,
+    before_first_smoothed,
+)
 
 
 def _new_keyframe_along_x(ref: OdometryRefresher, poses: dict[int, np.ndarray], k: int) -> None:
@@ -74,3 +79,12 @@ def test_small_drift_of_old_keyframes_is_not_resent() -> None:
     assert 0 not in resent
     np.testing.assert_allclose(ref.sent[0], original)
     assert ref.frame_jumps == 0
+
+
+def test_only_keyframes_before_the_back_ends_first_are_left_out() -> None:
+    """Keyframes 0-2 predate the back end's initialisation; 9 is the newest, which the back end
+    has not reached yet at the end of the run: it must stay in the global adjustment."""
+    smoothed = set(range(3, 9))
+    assert before_first_smoothed(list(range(10)), smoothed.__contains__) == {0, 1, 2}
+    assert before_first_smoothed(list(range(10)), lambda k: False) == set()
+    assert before_first_smoothed([], smoothed.__contains__) == set()

@@ -124,6 +124,13 @@ class OdometryRefresher:
         return odom
 
 
+def before_first_smoothed(kf_ids: list[int], smoothed: Callable[[int], bool]) -> set[int]:
+    """The keyframes before the first one the back end estimated (its initialisation). Only
+    those: at the end of a run, the back end may still be busy with the newest keyframes."""
+    first = min((k for k in kf_ids if smoothed(k)), default=None)
+    return set() if first is None else {k for k in kf_ids if k < first}
+
+
 def _warm_up() -> bool:
     """Import GTSAM in the worker before the first loop needs it, at a lower priority than
     the front end (pose-graph optimisation only has to finish soon, not within a frame)."""
@@ -147,9 +154,13 @@ class LoopClosureStage(Stage):
         threaded: bool,
         vocabulary: Vocabulary | None = None,
         queue_size: int = 64,
+        smoothed: Callable[[int], bool] | None = None,
     ):
+        """``smoothed(keyframe id)``: whether the back end has estimated that keyframe (asked
+        at the end; the others stay out of the global adjustment)."""
         super().__init__("loop", maxsize=queue_size, threaded=threaded)
         self.cfg = cfg
+        self.smoothed = smoothed
         self.closer = LoopCloser(calib, cfg, vocabulary, inline_pgo=False)
         self.relocaliser = Relocaliser(calib, self.closer.store, cfg, self.closer.vocab)
         self.odometry_pose = odometry_pose
@@ -233,6 +244,10 @@ class LoopClosureStage(Stage):
         if self._executor is not None:
             self._executor.shutdown(wait=True, cancel_futures=True)
         with self._lock:
+            if self.smoothed is not None:
+                self.closer.exclude_from_adjustment = before_first_smoothed(
+                    self.closer.kf_ids, self.smoothed
+                )
             self.closer.global_adjustment()
 
     def abort(self) -> None:

@@ -23,7 +23,7 @@ import numpy as np
 from slam.calibration import Calibration
 from slam.loop.config import LoopClosureConfig
 from slam.loop.relocaliser import Relocaliser
-from slam.loop.stage import OdometryRefresher
+from slam.loop.stage import OdometryRefresher, before_first_smoothed
 from slam.loop.store import KeyframeDescription, KeyframeStore
 from slam.loop.vocabulary import load_default_vocabulary
 from slam.messages import EndOfStream, Keyframe, LoopCorrection
@@ -40,6 +40,14 @@ class _LoopInput:
     keyframe: Keyframe  # without the right image (not needed here)
     world_from_body_odom: np.ndarray
     refreshed: dict[int, np.ndarray]  # newer odometry of recent keyframes
+
+
+@dataclass(frozen=True, eq=False)
+class _Unsmoothed:
+    """Keyframes from before the back end's initialisation (sent at the end, before the
+    global adjustment)."""
+
+    keyframe_ids: frozenset[int]
 
 
 @dataclass(frozen=True, eq=False)
@@ -67,6 +75,9 @@ def _worker(calib: Calibration, cfg: LoopClosureConfig, inbox: Any, outbox: Any)
         msg = receive(inbox)
         if isinstance(msg, EndOfStream):
             break
+        if isinstance(msg, _Unsmoothed):
+            closer.exclude_from_adjustment = set(msg.keyframe_ids)
+            continue
         try:
             for kid, pose in msg.refreshed.items():
                 if kid in closer.odom:
@@ -125,10 +136,14 @@ class LoopClosureWorkerStage(Stage):
         odometry_pose: Callable[[int], np.ndarray | None],
         on_correction: Callable[[LoopCorrection], None],
         idle_worker: bool = False,
+        smoothed: Callable[[int], bool] | None = None,
     ):
-        """``idle_worker``: run the worker process under SCHED_IDLE (:func:`lower_priority`)."""
+        """``idle_worker``: run the worker process under SCHED_IDLE (:func:`lower_priority`).
+        ``smoothed(keyframe id)``: whether the back end has estimated that keyframe (asked at
+        the end; the others stay out of the global adjustment)."""
         super().__init__("loop", maxsize=256, threaded=True)
         self.cfg = cfg
+        self.smoothed = smoothed
         self.odometry_pose = odometry_pose
         self.refresher = OdometryRefresher(odometry_pose)
         self.on_correction = on_correction
@@ -191,6 +206,10 @@ class LoopClosureWorkerStage(Stage):
             self.error = StageError(self.name, RuntimeError("the loop-closure worker died"), "")
 
     def on_end(self) -> None:
+        if self.smoothed is not None:
+            with self._lock:
+                kids = list(self.t_ns_of)
+            self._worker.put(_Unsmoothed(frozenset(before_first_smoothed(kids, self.smoothed))))
         self._worker.stop(receive_timeout_s=600)
 
     def abort(self) -> None:
