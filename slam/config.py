@@ -81,6 +81,14 @@ class FrontendConfig:
     use_gyro_prediction: bool = True
     """Predict feature positions by integrating the gyro between frames."""
 
+    def __post_init__(self) -> None:
+        if self.corner_subpixel_half_window_px < 1:
+            raise SlamError(
+                "config key frontend.corner_subpixel_half_window_px must be at least 1, got "
+                f"{self.corner_subpixel_half_window_px!r} (switch refinement off with "
+                "frontend.corner_subpixel: false)"
+            )
+
 
 @dataclass
 class PlayerConfig:

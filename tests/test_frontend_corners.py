@@ -47,3 +47,16 @@ def test_refined_corners_sit_on_the_true_corners() -> None:
     assert np.median(e_lat) > 0.5, np.median(e_lat)  # the half-resolution lattice: 2.1
     # every refined corner belongs to a true corner (none dragged off by the larger window)
     assert np.percentile(e_ref, 95) < 0.3, np.percentile(e_ref, 95)
+
+
+def test_a_zero_refinement_window_is_a_config_error(tmp_path) -> None:
+    """cv2.cornerSubPix would fail deep in the front end's thread; the config says what to do."""
+    import pytest
+
+    from slam.config import load_config
+    from slam.errors import SlamError
+
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("preset: euroc-stereo-imu\nfrontend:\n  corner_subpixel_half_window_px: 0\n")
+    with pytest.raises(SlamError, match="corner_subpixel: false"):
+        load_config(str(bad))
