@@ -402,20 +402,7 @@ class LoopCloser:
                     continue
                 c = self.store.description(cand)
                 if method == "landmarks":
-                    if len(desc.landmark_xy_undist) != len(desc.landmark_desc) or len(
-                        c.landmark_xy_undist
-                    ) != len(c.landmark_desc):
-                        continue
-                    res = verify_loop_landmarks(
-                        desc.landmark_xy_undist,
-                        desc.landmark_desc,
-                        desc.landmark_points_cam,
-                        c.landmark_xy_undist,
-                        c.landmark_desc,
-                        c.landmark_points_cam,
-                        self.K,
-                        self.verify_params,
-                    )
+                    res = self._verify_landmark_to_landmark(desc, c)
                 else:
                     res = verify_loop(
                         desc.query_xy_undist,
@@ -431,6 +418,26 @@ class LoopCloser:
             if best[1] is not None:
                 break
         return best
+
+    def _verify_landmark_to_landmark(
+        self, query: KeyframeDescription, candidate: KeyframeDescription
+    ) -> LoopVerification | None:
+        """``verify_loop_landmarks`` between two keyframe descriptions (None when either lacks
+        the front end's pixels for its landmark descriptors)."""
+        if len(query.landmark_xy_undist) != len(query.landmark_desc) or len(
+            candidate.landmark_xy_undist
+        ) != len(candidate.landmark_desc):
+            return None
+        return verify_loop_landmarks(
+            query.landmark_xy_undist,
+            query.landmark_desc,
+            query.landmark_points_cam,
+            candidate.landmark_xy_undist,
+            candidate.landmark_desc,
+            candidate.landmark_points_cam,
+            self.K,
+            self.verify_params,
+        )
 
     def _verify_and_gate(
         self, kf: Keyframe, desc: KeyframeDescription, candidates: list[int]
@@ -747,20 +754,7 @@ class LoopCloser:
             for j in chosen:
                 m = ids[j]
                 md = self.store.description(m)
-                if len(qd.landmark_xy_undist) != len(qd.landmark_desc) or len(
-                    md.landmark_xy_undist
-                ) != len(md.landmark_desc):
-                    continue
-                ver = verify_loop_landmarks(
-                    qd.landmark_xy_undist,
-                    qd.landmark_desc,
-                    qd.landmark_points_cam,
-                    md.landmark_xy_undist,
-                    md.landmark_desc,
-                    md.landmark_points_cam,
-                    self.K,
-                    self.verify_params,
-                )
+                ver = self._verify_landmark_to_landmark(qd, md)
                 if ver is None:
                     continue
                 measured = (
