@@ -135,7 +135,7 @@ def rotation_angle_rad(rotation: np.ndarray) -> float:
 
 
 def so3_log(rotation: np.ndarray) -> np.ndarray:
-    """Rotation vector (rad) of a rotation matrix."""
+    """Rotation vector (rad) of a rotation matrix (3, 3), or vectors (N, 3) of matrices (N, 3, 3)."""
     from scipy.spatial.transform import Rotation
 
     return Rotation.from_matrix(rotation).as_rotvec()

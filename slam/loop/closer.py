@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 
 from slam.calibration import Calibration
-from slam.geometry import invert_transform, make_transform, rotation_angle_rad, so3_exp, so3_log
+from slam.geometry import invert_transform, rotation_angle_rad, so3_exp_batch, so3_log
 from slam.loop.config import LoopClosureConfig
 from slam.loop.database import LoopDetector, LoopDetectorParams
 from slam.loop.global_ba import (
@@ -866,22 +866,19 @@ def loop_closed_poses(
         if not len(km):
             continue
         order = km[np.argsort(kt[km], kind="stable")]
-        times = kt[order]
-        pos = np.clip(np.searchsorted(times, ft[fm], side="right") - 1, 0, len(order) - 1)
-        for n, f in enumerate(fm.tolist()):
-            c = corr[order[pos[n]]]
-            nxt = pos[n] + 1
-            if interpolate and nxt < len(order) and times[pos[n]] <= ft[f] < times[nxt]:
-                c = _interpolate_transform(
-                    c,
-                    corr[order[nxt]],
-                    (ft[f] - times[pos[n]]) / max(int(times[nxt] - times[pos[n]]), 1),
-                )
-            out[f] = c @ out[f]
+        times, seg_corr, f_t = kt[order], corr[order], ft[fm]
+        pos = np.clip(np.searchsorted(times, f_t, side="right") - 1, 0, len(order) - 1)
+        frame_corr = seg_corr[pos]
+        # between two keyframes: vectorised (this runs at every output flush of a run)
+        between = (pos + 1 < len(order)) & (times[pos] <= f_t) & interpolate
+        if between.any():
+            i = pos[between]
+            a, b = seg_corr[i], seg_corr[i + 1]
+            alpha = (f_t[between] - times[i]) / np.maximum(times[i + 1] - times[i], 1)
+            rel = so3_log(np.transpose(a[:, :3, :3], (0, 2, 1)) @ b[:, :3, :3]).reshape(-1, 3)
+            rot = a[:, :3, :3] @ so3_exp_batch(alpha[:, None] * rel)
+            trans = (1.0 - alpha)[:, None] * a[:, :3, 3] + alpha[:, None] * b[:, :3, 3]
+            frame_corr[between, :3, :3] = rot
+            frame_corr[between, :3, 3] = trans
+        out[fm] = frame_corr @ out[fm]
     return out
-
-
-def _interpolate_transform(a: np.ndarray, b: np.ndarray, alpha: float) -> np.ndarray:
-    """a at alpha 0, b at 1: rotation along the geodesic, translation linearly."""
-    rot = a[:3, :3] @ so3_exp(alpha * so3_log(a[:3, :3].T @ b[:3, :3]))
-    return make_transform(rot, (1.0 - alpha) * a[:3, 3] + alpha * b[:3, 3])
