@@ -382,13 +382,11 @@ def run_slam(
         corrected = loop_stage.corrected_keyframe_poses()
         t_ns_of, segment_of = loop_stage.keyframe_times_and_segments()
         kids = [k for k in corrections if k in t_ns_of]
-        if backend is not None and backend.keyframe_poses:
-            # Keyframes from before the back end's initialisation only have the front end's
-            # pre-gravity-alignment pose, and their odometry edge carries the change of frame
-            # (measured on room-figure8: kf 0 and 1 corrected 41 mm off): frames of that time
-            # follow the first initialised keyframe instead.
-            initialised = dict(backend.keyframe_poses)
-            kids = [k for k in kids if k in initialised] or kids
+        # Keyframes from before the back end's initialisation only have the front end's
+        # pre-gravity-alignment pose, and their odometry edge carries the change of frame
+        # (measured on room-figure8: kf 0 and 1 corrected 41 mm off): frames of that time
+        # follow the first initialised keyframe instead.
+        kids = [k for k in kids if smoothed(k)] or kids
         # A keyframe's correction relative to the *output* pose of its own frame where there is
         # one: frames then follow their keyframe by the causal relative motion they were tracked
         # with. (Relative to the keyframe's back-end pose, each frame also carried the
