@@ -214,6 +214,8 @@ def global_bundle_adjustment(
         if (ka, la) in row_of and (kb, lb) in row_of
     ]
     lid = _fuse(split_id, split_pairs)
+    fused_of = dict(zip(split_id.tolist(), lid.tolist(), strict=True))
+    fused = len({fused_of[a] for a, _ in split_pairs})  # fused landmarks the pairs made
     left = np.concatenate(rows_l) if rows_l else np.zeros((0, 2))
     right = np.concatenate(rows_r) if rows_r else np.zeros((0, 2))
     pts_cam = np.concatenate(rows_p) if rows_p else np.zeros((0, 3))
@@ -242,9 +244,6 @@ def global_bundle_adjustment(
     per_kf = dict(zip(*np.unique(kf_of[obs], return_counts=True), strict=True))
     if not kf_ids or min(int(per_kf.get(k, 0)) for k in kf_ids) < p.min_observations:
         return None
-    fused = len(
-        {int(x) for x in _fuse(np.array([a for a, _ in split_pairs], np.int64), split_pairs)}
-    )
 
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
