@@ -25,6 +25,7 @@ import numpy as np
 from slam.calibration import Calibration
 from slam.config import FrontendConfig
 from slam.cputime import runqueue_wait_ns, thread_cpu_s
+from slam.frontend.affine_klt import TrackTemplates
 from slam.frontend.features import build_pyramid, detect_features, track_klt
 from slam.frontend.stereo import StereoMatcher
 from slam.geometry import (
@@ -87,6 +88,7 @@ class FrontEnd:
         self.ids = np.zeros(0, np.int64)
         self.ages = np.zeros(0, np.int64)
         self.landmarks: dict[int, np.ndarray] = {}
+        self.templates = TrackTemplates(cfg.affine_half_window_px, cfg.affine_iterations)
         self.pyr_prev: np.ndarray | None = None
         self.t_prev_ns = 0
         # pose state
@@ -199,6 +201,7 @@ class FrontEnd:
         self.ids = np.zeros(0, np.int64)
         self.ages = np.zeros(0, np.int64)
         self.landmarks.clear()
+        self.templates.clear()
         self.world_from_body = None
         self.prev_world_from_body = None
         return self._result(frame, "lost", t_start, reason=reason)
@@ -291,6 +294,10 @@ class FrontEnd:
         px, ok = track_klt(self.pyr_prev, pyr, self.px, self.cfg, guess_to=guess)
         num_tracked = int(ok.sum())
         self.px, self.ids, self.ages = px[ok], self.ids[ok], self.ages[ok] + 1
+        if self.cfg.affine_refinement:
+            period = self.cfg.affine_period_frames
+            turn = (self.ids >= 0) & (self.ids % period == self.stats.frames % period)
+            self.px[turn] = self.templates.refine(self.ids[turn], self.px[turn], pyr)
         pose_guess = self._predict_pose(frame.t_ns, rot_b0_b1)
         has_lm = np.array([i in self.landmarks for i in self.ids.tolist()], dtype=bool)
         if has_lm.sum() < self.cfg.min_pnp_inliers:
@@ -382,6 +389,7 @@ class FrontEnd:
         self.ids = np.zeros(0, np.int64)
         self.ages = np.zeros(0, np.int64)
         self.landmarks.clear()
+        self.templates.clear()
         pose = self.last_known_pose.copy()
         prior = self._imu_prior(frame.t_ns) if self.stats.segments else None
         reloc = None
@@ -474,6 +482,9 @@ class FrontEnd:
             ids[need] = new_ids
             for lid, p in zip(new_ids.tolist(), pts_world, strict=True):
                 self.landmarks[lid] = p
+            if self.cfg.affine_refinement:
+                self.templates.keep_only(ids[(ids >= 0) & ~need])
+                self.templates.add(new_ids, px[need], frame.left)
         has_lm = ids >= 0
         if new_segment and has_lm.sum() < max(2 * self.cfg.min_pnp_inliers, 30):
             return None
