@@ -349,6 +349,7 @@ def run_slam(
             "mapping": None if mapper is None else mapper.stats(),
             "relocalisations": fe.relocalisations,
             "imu_bridged_losses": fe.imu_bridged,
+            "track_refits": {"attempted": fe.track_refits, "kept": fe.track_refits_kept},
             "backend": None
             if backend is None
             else {

@@ -73,9 +73,9 @@ def test_flat_or_failed_patches_keep_their_pixel() -> None:
 
     store = TrackTemplates(7, 3)
     store.add(np.array([0, 1]), pts, img)
-    out = store.refine(np.array([0, 1]), far, img)
+    out, has_template, refitted = store.refine(np.array([0, 1]), far, img)
     np.testing.assert_array_equal(out, far)
-    assert (store.attempted, store.refined) == (2, 0)
+    assert has_template.all() and not refitted.any()
 
 
 def test_track_templates_follow_the_live_landmarks() -> None:
@@ -89,7 +89,9 @@ def test_track_templates_follow_the_live_landmarks() -> None:
     shifted, mapping = _warped(img, np.eye(2), np.zeros(2), np.array([0.4, -0.3]))
     ids = np.array([6, -1, 3, 2])  # 2 was dropped, -1 has no landmark
     query = pts[[6, 0, 3, 2]]
-    out = store.refine(ids, query, shifted)
+    out, has_template, refitted = store.refine(ids, query, shifted)
+    assert has_template.tolist() == [True, False, True, False]
+    assert refitted.tolist() == [True, False, True, False]
     np.testing.assert_allclose(out[[0, 2]], mapping(query[[0, 2]].astype(float)), atol=0.03)
     np.testing.assert_array_equal(out[[1, 3]], query[[1, 3]])
     with pytest.raises(ValueError, match="increasing id order"):

@@ -76,7 +76,7 @@ def track_errors(
         if affine:
             period = cfg.affine_period_frames
             turn = alive & (ids % period == i % period)
-            px[turn] = templates.refine(ids[turn], px[turn], images[i])
+            px[turn] = templates.refine(ids[turn], px[turn], images[i])[0]
         if i % check_every == 0:
             err = np.linalg.norm(px - _project(seq, start + i, world), axis=1)
             out[i] = err[alive & np.isfinite(err)]

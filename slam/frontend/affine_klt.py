@@ -240,8 +240,6 @@ class TrackTemplates:
         self.half_window_px = half_window_px
         self.iterations = iterations
         self.clear()
-        self.attempted = 0
-        self.refined = 0
 
     def clear(self) -> None:
         self._pending: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
@@ -260,14 +258,18 @@ class TrackTemplates:
         found = (pos < len(self.ids)) & (self.ids[pos_c] == ids) if len(self.ids) else pos < 0
         return found, pos_c[found]
 
-    def refine(self, landmark_ids: np.ndarray, px: np.ndarray, image: np.ndarray) -> np.ndarray:
-        """Tracked pixels ``px`` (N, 2) of ``landmark_ids`` (N,; -1 for none), refined where a
-        template exists and its fit is good; the others are returned unchanged."""
+    def refine(
+        self, landmark_ids: np.ndarray, px: np.ndarray, image: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Tracked pixels ``px`` (N, 2) of ``landmark_ids`` (N,; -1 for none), re-fitted where
+        a template exists and its fit is good, the others unchanged. Returns ``(pixels,
+        has_template, refitted)``, the last two (N,) bool."""
         self.build_pending()
         out = np.array(px, dtype=np.float32, copy=True)
         found, rows = self._rows(landmark_ids)
+        refitted = np.zeros(len(out), bool)
         if len(rows) == 0:
-            return out
+            return out, found, refitted
         fit = refine_affine(
             self.templates.take(rows),
             image,
@@ -277,10 +279,9 @@ class TrackTemplates:
         )
         idx = np.flatnonzero(found)
         out[idx[fit.ok]] = fit.pts_px[fit.ok]
+        refitted[idx[fit.ok]] = True
         self.linear[rows[fit.ok]] = fit.linear[fit.ok]
-        self.attempted += len(rows)
-        self.refined += int(fit.ok.sum())
-        return out
+        return out, found, refitted
 
     def keep_only(self, landmark_ids: np.ndarray) -> None:
         self.build_pending()

@@ -53,6 +53,10 @@ class FrontendStats:
     imu_bridged: int = 0
     keyframes: int = 0
     estimate_corrections: int = 0
+    track_refits: int = 0
+    """Affine re-fits of tracks to their birth patch attempted (``affine_klt``)..."""
+    track_refits_kept: int = 0
+    """...and kept (the others were weak, moved too far or degenerated)."""
     state_log: list[tuple[int, str]] = field(default_factory=list)
 
 
@@ -297,7 +301,12 @@ class FrontEnd:
         if self.cfg.affine_refinement:
             period = self.cfg.affine_period_frames
             turn = (self.ids >= 0) & (self.ids % period == self.stats.frames % period)
-            self.px[turn] = self.templates.refine(self.ids[turn], self.px[turn], pyr)
+            px_fit, has_template, refitted = self.templates.refine(
+                self.ids[turn], self.px[turn], pyr
+            )
+            self.px[turn] = px_fit
+            self.stats.track_refits += int(has_template.sum())
+            self.stats.track_refits_kept += int(refitted.sum())
         pose_guess = self._predict_pose(frame.t_ns, rot_b0_b1)
         has_lm = np.array([i in self.landmarks for i in self.ids.tolist()], dtype=bool)
         if has_lm.sum() < self.cfg.min_pnp_inliers:
