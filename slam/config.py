@@ -46,16 +46,17 @@ class FrontendConfig:
     moved both ways: 6.1 / 6.4, 10.1 / 9.6, 15.4 / 13.1, 26.7 / 39.3, within its run-to-run
     spread on the hall). 0.56 ms per 220 corners on the synthetic room (0.30 with 3)."""
     affine_refinement: bool = True
-    """At every keyframe, re-fit each landmark track to the patch where it was born with an
-    affine warp (``slam/frontend/affine_klt.py``) and continue from there. Translation-only KLT
-    drifts as the window deforms: on the synthetic room (ground-truth depth and poses,
+    """Re-fit each landmark track to the patch where it was born with an affine warp
+    (``slam/frontend/affine_klt.py``; a share of the tracks every frame, before PnP) and
+    continue from the re-fitted pixel. Translation-only KLT drifts as its window deforms: on the synthetic room (ground-truth depth and poses,
     ``python -m tools.bench_klt_drift``) the median error after 4 s is 0.63 px with a 21-px
     window, 0.063 px with the re-fit."""
     affine_half_window_px: int = 7
     """Half side of the affine template (a (2n+1)^2 patch)."""
     affine_iterations: int = 3
     """Inverse-compositional iterations per fit. Started from the last fit (a few frames
-    old), 3 gave the same tracks as 6 or 12 (median error after 4 s 0.098 / 0.099 px)."""
+    old), 3 gave the same tracks as 6 (median error after 4 s 0.098 / 0.099 px, measured with
+    bilinear sampling)."""
     affine_period_frames: int = 4
     """Each track is re-fitted every this many frames (a quarter of the tracks per frame: ~1
     ms, instead of ~4 ms for all of them on the keyframe's frame, the front end's slowest)."""

@@ -102,7 +102,13 @@ def _sample(image: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
 def build_templates(
     image: np.ndarray, pts_px: np.ndarray, half_window_px: int, min_eigen: float = 1e-4
 ) -> AffineTemplates:
-    """Templates of the points ``pts_px`` (N, 2) in ``image`` (grey uint8)."""
+    """Templates of the points ``pts_px`` (N, 2) in ``image`` (grey uint8).
+
+    A template is ``valid`` when the smaller eigenvalue of its mean gradient matrix exceeds
+    ``min_eigen`` * 255^2 (1e-4: a gradient of ~2.5 grey levels per pixel) and its 6x6 system
+    is well conditioned. With 1e-3, 18% of the front end's corners were left to drift and the
+    90th percentile error after 4 s was 1.0 px instead of 0.33 (``tools.bench_klt_drift``).
+    """
     offsets = _offsets(half_window_px)
     pts = np.asarray(pts_px, dtype=np.float32).reshape(-1, 2)
     n, p = len(pts), len(offsets)
@@ -232,8 +238,9 @@ class TrackTemplates:
     """The birth patch of every live landmark track, and its last fitted deformation.
 
     Rows are kept in landmark-id order (ids only grow), so lookups are one ``searchsorted``.
-    The front end refines its tracks against these at every keyframe (:meth:`refine`), forgets
-    the tracks it dropped (:meth:`keep_only`) and adds the landmarks it creates (:meth:`add`).
+    The front end re-fits a share of its tracks every frame (:meth:`refine`), and at keyframes
+    forgets the tracks it dropped (:meth:`keep_only`) and adds the landmarks it creates
+    (:meth:`add`).
     """
 
     def __init__(self, half_window_px: int, iterations: int) -> None:

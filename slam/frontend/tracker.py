@@ -1,6 +1,7 @@
 """The front end: every frame, track features, estimate the pose, decide keyframes.
 
-Per frame: black/textureless check -> gyro-predicted KLT (forward-backward checked) -> PnP
+Per frame: black/textureless check -> gyro-predicted KLT (forward-backward checked) -> a
+quarter of the landmark tracks re-fitted to their birth patch (``affine_klt``) -> PnP
 RANSAC against the local map's landmarks (+ LM refinement) -> keyframe decision -> at keyframes,
 new grid-bucketed features and stereo triangulation of new landmarks.
 
