@@ -57,10 +57,12 @@ class InMemorySequence(Sequence):
         return StereoFrame(int(self._t_ns[index]), self._left[index], right, index)
 
 
-def euroc_like_calibration(
+def small_rig_calibration(
     width: int = 752, height: int = 480, stereo: bool = True, time_offset_ns: int = 0
 ) -> Calibration:
-    """EuRoC-like stereo rig (radtan, 11 cm baseline, cameras looking along body +x)."""
+    """A stereo rig for small in-memory test images: EuRoC's focal lengths and radtan
+    distortion at any image size, 11 cm baseline, cameras looking along body +x (the full
+    EuRoC rig is ``datasets.synth.generator.euroc_like_calibration``)."""
     intr = CameraIntrinsics(
         width, height, 458.654, 457.296, width / 2 - 8.8, height / 2 + 8.4, "radtan",
         (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05),
@@ -120,5 +122,5 @@ def random_sequence(
     rot[:, 1, 0], rot[:, 1, 1] = np.sin(yaw), np.cos(yaw)
     rot[:, 2, 2] = 1.0
     gt = Trajectory(t_gt, pos, matrix_to_quat_wxyz(rot))
-    calib = euroc_like_calibration(width, height, stereo, time_offset_ns)
+    calib = small_rig_calibration(width, height, stereo, time_offset_ns)
     return InMemorySequence(name, calib, t_frames, left, right, imu, gt)

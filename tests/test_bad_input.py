@@ -12,7 +12,7 @@ from mcap.writer import CompressionType, Writer
 from datasets import cdr
 from datasets.mcap_io import McapSequence, ros2_msgdef, write_sequence_mcap
 from datasets.mcap_scan import scan_mcap
-from datasets.memory import euroc_like_calibration, random_sequence
+from datasets.memory import random_sequence, small_rig_calibration
 from datasets.open import open_sequence
 from slam.errors import InputError
 from tools.cli import main as slam_main
@@ -101,7 +101,7 @@ def _write_raw(
     calibration: bool = True,
 ) -> None:
     """Write a file message by message, in the given (possibly bad) order."""
-    cal = euroc_like_calibration(32, 24, stereo=False)
+    cal = small_rig_calibration(32, 24, stereo=False)
     rng = np.random.default_rng(0)
     with open(path, "wb") as fh:
         w = Writer(fh, compression=CompressionType.ZSTD)

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from datasets.mcap_io import McapSequence, write_sequence_mcap
-from datasets.memory import euroc_like_calibration, textured_image
+from datasets.memory import small_rig_calibration, textured_image
 from datasets.sequence import ImuArrays, Sequence
 from slam.messages import StereoFrame
 
@@ -28,7 +28,7 @@ class TexturedSequence(Sequence):
     """Frames made on demand from a bank of textured images (no 900 MB held in memory)."""
 
     def __init__(self, duration_s: float, seed: int = 0) -> None:
-        super().__init__(name="bench-textured", calibration=euroc_like_calibration())
+        super().__init__(name="bench-textured", calibration=small_rig_calibration())
         rng = np.random.default_rng(seed)
         self._bank = [textured_image(rng, 752, 480) for _ in range(16)]
         start = 1_700_000_000_000_000_000

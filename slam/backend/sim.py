@@ -45,8 +45,10 @@ _EUROC_BODY_FROM_CAM = (
 _R_LEVEL = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])
 
 
-def euroc_like_calibration() -> Calibration:
-    """Undistorted EuRoC stereo rig (752x480) with the EuRoC extrinsics and IMU noise."""
+def pinhole_euroc_calibration() -> Calibration:
+    """Undistorted EuRoC stereo rig (752x480) with the EuRoC extrinsics and IMU noise (the
+    back-end simulation projects landmarks without distortion; the rendered sequences use
+    ``datasets.synth.generator.euroc_like_calibration``)."""
     cams = tuple(
         CameraCalibration(
             name=f"cam{i}",
@@ -256,7 +258,7 @@ def generate_world(
     ``start_s`` is where on the analytic path the flight starts (in motion unless ``still_s`` >
     0, which holds the vehicle still for that long and then ramps smoothly into motion)."""
     rng = np.random.default_rng(seed)
-    calib = euroc_like_calibration()
+    calib = pinhole_euroc_calibration()
     imu_cal = calib.imu
     assert imu_cal is not None
     traj = RoomTrajectory(start_s=start_s, still_s=still_s)
