@@ -313,7 +313,9 @@ def _pose3(t: np.ndarray, q_wxyz: np.ndarray) -> gtsam.Pose3:
     )
 
 
-def _gaussian(info_g2o: np.ndarray) -> gtsam.noiseModel.Gaussian:
+def gaussian_from_g2o_information(info_g2o: np.ndarray) -> gtsam.noiseModel.Gaussian:
+    """GTSAM noise model of a 6x6 information matrix in g2o's order (translation first;
+    GTSAM's Pose3 tangent puts rotation first)."""
     info_gtsam = info_g2o[np.ix_(_G2O_TO_GTSAM, _G2O_TO_GTSAM)]
     return gtsam.noiseModel.Gaussian.Information(info_gtsam)
 
@@ -346,7 +348,7 @@ def _edge_factors(
     for k in range(graph.num_edges):
         i, j = int(graph.edge_ids[k, 0]), int(graph.edge_ids[k, 1])
         meas = _pose3(graph.edge_t_m[k], graph.edge_q_wxyz[k])
-        base = _gaussian(graph.edge_information[k])
+        base = gaussian_from_g2o_information(graph.edge_information[k])
         plain.append(gtsam.BetweenFactorPose3(i, j, meas, base))
         if robust in ("huber", "cauchy") and graph.edge_is_loop[k]:
             kernel.append(

@@ -32,9 +32,7 @@ import gtsam
 import numpy as np
 
 from slam.calibration import Calibration
-from slam.posegraph import PoseEdge
-
-_G2O_TO_GTSAM = [3, 4, 5, 0, 1, 2]
+from slam.posegraph import PoseEdge, gaussian_from_g2o_information
 
 
 def _pose_key(kf_id: int) -> int:
@@ -274,9 +272,7 @@ def global_bundle_adjustment(
         for e in odometry_edges:
             if e.from_id in kf_set and e.to_id in kf_set:
                 info = e.information / p.odometry_sigma_scale**2
-                noise: gtsam.noiseModel.Base = gtsam.noiseModel.Gaussian.Information(
-                    info[np.ix_(_G2O_TO_GTSAM, _G2O_TO_GTSAM)]
-                )
+                noise: gtsam.noiseModel.Base = gaussian_from_g2o_information(info)
                 if p.odometry_huber_k > 0:
                     noise = gtsam.noiseModel.Robust.Create(
                         gtsam.noiseModel.mEstimator.Huber.Create(p.odometry_huber_k), noise
