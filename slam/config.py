@@ -14,7 +14,7 @@ from typing import Any
 
 import yaml
 
-from mapping.stage import MapperStageConfig
+from mapping.config import MapperStageConfig
 from slam.backend.config import BackendConfig
 from slam.errors import SlamError
 from slam.loop.config import LoopClosureConfig
@@ -136,13 +136,11 @@ class PlayerConfig:
     OpenCV call the front end makes releases the GIL; getting it back from a thread running
     Python (the player decoding, a queue feeder pickling) can take up to this long, several
     times per frame. A shorter interval trades a little throughput for front-end latency."""
-    idle_workers: bool = True
-    """Run the loop-closure, mapper and reader processes under Linux's SCHED_IDLE policy: they
-    get the CPU the front end and back end leave, and a front end that wakes up preempts them
-    at once (the back end runs at nice 19, see ``slam.backend_stage.BACKEND_NICE``). On 2
-    cores this took front-end p99 on room-aggressive (``--speed max``) from 35-48 ms to about
-    25 ms. The cost: other normal-priority work that keeps every core busy starves them
-    until a core frees up. False: nice levels only."""
+    idle_workers: bool = False
+    """Run the loop-closure and mapper processes under Linux's SCHED_IDLE policy: on an
+    otherwise idle machine a waking front end preempts them at once, but while other
+    normal-priority work keeps every core busy they get no CPU at all. False (the default):
+    nice levels only (``slam.runtime.priority``)."""
 
 
 @dataclass

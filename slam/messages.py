@@ -7,9 +7,13 @@ names, picklable. Arrays are never mutated after construction.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:  # the loop closer's own type; only its instances travel
+    from slam.loop.store import KeyframeDescription
 
 
 @dataclass(frozen=True, eq=False)
@@ -136,6 +140,7 @@ class EndOfStream:
     """Sentinel passed down a stage's queue when its input is exhausted."""
 
     t_ns: int = 0
+    interrupted: bool = False  # the run was stopped (Ctrl-C, SIGTERM): skip optional end work
 
 
 @dataclass(frozen=True, eq=False)
@@ -225,3 +230,145 @@ class MeshSnapshot:
     faces: np.ndarray  # (M, 3) int32
     normals: np.ndarray  # (N, 3) float32
     colors_rgb: np.ndarray | None  # (N, 3) uint8
+
+
+# -- the worker-process protocol (slam.runtime.worker) --------------------------------------
+@dataclass(frozen=True)
+class WorkerReady:
+    """A worker process has started and can take input."""
+
+    pid: int
+
+
+@dataclass(frozen=True)
+class WorkerFailed:
+    """A worker process's stage failed; the worker ends after sending this."""
+
+    error: str  # "ExceptionType: message"
+    trace: str  # the worker's traceback
+
+
+@dataclass(frozen=True, eq=False)
+class WorkerFinal:
+    """A worker's last message, after :class:`EndOfStream`: what the stage returns at the end."""
+
+    payload: Any
+
+
+# -- stage payloads --------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class FrontendCorrection:
+    """The front end moved its world (the back end's estimate re-anchored it): every pose it
+    reported before ``t_ns`` is now ``new_from_old @ pose`` in its belief. ``reframe``: the
+    first one, the change from the VO frame into the back end's gravity-aligned world."""
+
+    t_ns: int
+    new_from_old: np.ndarray  # (4, 4)
+    reframe: bool
+
+
+@dataclass(frozen=True, eq=False)
+class LoopInput:
+    """A keyframe for the loop closer, with its odometry pose and its neighbours' newer ones."""
+
+    keyframe: Keyframe  # without the right image (not needed there)
+    world_from_body_odom: np.ndarray  # (4, 4)
+    refreshed: dict[int, np.ndarray]  # keyframe id -> newer odometry world_from_body
+
+
+@dataclass(frozen=True)
+class LoopUnsmoothed:
+    """Keyframes from before the back end's initialisation (left out of the global adjustment)."""
+
+    keyframe_ids: frozenset[int]
+
+
+@dataclass(frozen=True, eq=False)
+class LoopOutput:
+    """The loop closer's answer to one :class:`LoopInput`."""
+
+    description: KeyframeDescription  # for the relocaliser's mirror of the keyframe store
+    world_from_body_odom: np.ndarray  # (4, 4)
+    status: str  # "", or the loop event's status ("accepted", "rejected", "pending")
+    reason: str
+    correction: LoopCorrection | None
+
+
+@dataclass(frozen=True, eq=False)
+class LoopFinal:
+    """The loop closer's state at the end of the run (after the global adjustment)."""
+
+    stats: dict[str, Any]  # the stats.json ``loop_closure`` section
+    keyframe_map_from_odom: dict[int, np.ndarray]
+    corrected_poses: dict[int, np.ndarray]  # keyframe id -> map_from_body
+
+
+@dataclass(frozen=True)
+class BackendFinal:
+    """The back end's counters at the end of the run (stats.json ``backend``)."""
+
+    stats: dict[str, Any]
+
+
+@dataclass(frozen=True, eq=False)
+class MapKeyframe:
+    """A keyframe for the dense mapper: its images and camera pose at creation."""
+
+    t_ns: int
+    image_left: np.ndarray
+    image_right: np.ndarray | None
+    world_from_cam0: np.ndarray  # (4, 4)
+
+
+@dataclass(frozen=True, eq=False)
+class MapFinish:
+    """Re-integrate keyframes at their final poses, then extract (and write) the mesh."""
+
+    world_from_cam0_by_t: dict[int, np.ndarray]  # keyframe t_ns -> final world_from_cam0
+    mesh_path: str | None
+
+
+@dataclass
+class MapperSummary:
+    """What the mapper's final step did (stats.json ``mapping``)."""
+
+    fused: int = 0
+    skipped_static: int = 0
+    reintegrated: int = 0
+    vertices: int = 0
+    faces: int = 0
+    mesh_path: str | None = None
+    final_ms: float = 0.0
+    error: str | None = None
+    depth_ms: list[float] = field(default_factory=list)
+    fusion_ms: list[float] = field(default_factory=list)
+
+
+@dataclass(frozen=True, eq=False)
+class ReaderBundle:
+    """One frame and the IMU samples before it, from the reader process (or, with ``t_ns``
+    None, only the samples after the last frame). The images travel in a shared-memory slot
+    (``slot`` >= 0, ``shapes`` left[, right]) or inline."""
+
+    imu: ImuBatch
+    t_ns: int | None = None
+    index: int = -1
+    slot: int = -1  # -1: the images are inline
+    shapes: tuple[tuple[int, ...], ...] = ()
+    inline: tuple[np.ndarray | None, ...] = ()
+
+
+@dataclass(frozen=True)
+class ReaderEnd:
+    """The reader process reached the end of the sequence."""
+
+    warnings: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class ViewerText:
+    """A line for the viewer's event log."""
+
+    t_ns: int
+    text: str
+    level: str = "INFO"

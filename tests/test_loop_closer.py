@@ -12,6 +12,7 @@ from slam.loop.closer import LoopCloser, loop_closed_poses
 from slam.loop.config import LoopClosureConfig
 from slam.loop.synthetic import Drift, SyntheticKeyframe, ground_truth_keyframes
 from slam.loop.vocabulary import Vocabulary, load_default_vocabulary
+from slam.messages import LoopCorrection
 
 DRIFT = Drift(yaw_deg_per_s=0.05, translation_m_per_s=(0.003, -0.002, 0.001))
 
@@ -194,21 +195,24 @@ def test_aliasing_scene_accepts_no_loop(aliasing_scene, vocab) -> None:
 
 
 def test_stage_sequential_and_process_agree(loop_scene, closed, vocab) -> None:
-    from slam.loop.stage import LoopClosureStage
+    from slam.runtime.loop import LoopClosureStage
 
     seq, kfs = loop_scene
     reference, _ = closed
     results = {}
     for threaded in (False, True):
-        got = []
-        stage = LoopClosureStage(
-            seq.calibration,
-            LoopClosureConfig(),
-            lambda kid: None,
-            got.append,
-            threaded=threaded,
-            vocabulary=vocab,
-        )
+        got: list = []
+
+        class Sink:
+            def __init__(self, into: list) -> None:
+                self.into = into
+
+            def put(self, msg, block=True):
+                self.into.append(msg)
+                return True
+
+        stage = LoopClosureStage(seq.calibration, LoopClosureConfig(), threaded=threaded)
+        stage.connect(Sink(got), LoopCorrection)
         stage.start()
         for s in kfs:
             stage.put(s.keyframe)

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 from synthetic_planes import PlaneScene, orbit_poses
 
-from mapping.stage import MapperStage, MapperStageConfig
+from mapping.config import MapperStageConfig
 from slam.calibration import Calibration, CameraCalibration, CameraIntrinsics, ImuCalibration
 from slam.messages import Keyframe
+from slam.runtime.mapper import MapperStage
 
 W, H = 320, 240
 K = np.array([[230.0, 0.0, 160.0], [0.0, 230.0, 120.0], [0.0, 0.0, 1.0]])
@@ -52,7 +53,7 @@ def _keyframes(n: int) -> list[Keyframe]:
 @pytest.mark.parametrize("threaded", [False, True])
 def test_stage_reports_lag_and_drops(threaded):
     cfg = MapperStageConfig(enabled=True, num_planes=32, max_backlog=1, final_reintegration=False)
-    stage = MapperStage(_calibration(), cfg, lambda mesh: None, threaded=threaded)
+    stage = MapperStage(_calibration(), cfg, threaded=threaded)
     kfs = _keyframes(6)
     for kf in kfs:  # a burst: the worker cannot finish one before the next arrives
         stage.process(kf)

@@ -11,8 +11,8 @@ import pytest
 from datasets.mcap_io import McapSequence, write_sequence_mcap
 from datasets.mcap_scan import scan_mcap
 from datasets.memory import random_sequence
-from datasets.prefetch import prefetched_messages
 from slam.messages import StereoFrame
+from slam.runtime.reader import prefetched_messages
 
 
 @pytest.fixture(scope="module")
@@ -39,10 +39,10 @@ def _same(a: list, b: list) -> None:  # type: ignore[type-arg]
 def test_same_messages_in_the_same_order(
     path: Path, slots: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import datasets.prefetch
+    import slam.runtime.reader
 
     if slots == "inline":  # slots too small for any frame: every image travels in the queue
-        monkeypatch.setattr(datasets.prefetch, "_slot_bytes", lambda seq: 16)
+        monkeypatch.setattr(slam.runtime.reader, "_slot_bytes", lambda seq: 16)
     direct = list(McapSequence(path).messages())
     assert sum(isinstance(m, StereoFrame) for m in direct) == 30
     _same(list(prefetched_messages(McapSequence(path), frames_ahead=3)), direct)

@@ -9,15 +9,14 @@ from pathlib import Path
 
 SCRIPT = """
 import os, signal
-from slam.worker import READY, WorkerProcess, receive
+from slam.runtime.worker import WorkerCore, WorkerProcess
 
-def target(inbox, outbox):
-    outbox.put(READY)
-    while True:
-        receive(inbox, poll_s=0.2)
+class Idle(WorkerCore):
+    def handle(self, msg):
+        return []
 
 if __name__ == "__main__":
-    worker = WorkerProcess("orphan-test", target, (), lambda item: False, lambda: None)
+    worker = WorkerProcess("orphan-test", Idle, (), lambda item: False, lambda code: None, "loop")
     print(worker.proc.pid, flush=True)
     os.kill(os.getpid(), signal.SIGKILL)
 """

@@ -1,57 +1,73 @@
-"""Worker processes start at the priority they are given, before they run any of their code."""
+"""Worker processes run at their role's priority, set before they run any of their code, and
+leave SIGINT/SIGTERM to the main process."""
 
 from __future__ import annotations
 
 import os
-import queue
+import signal
 import threading
+from typing import Any
 
 import pytest
 
-from slam.messages import EndOfStream
-from slam.worker import READY, WorkerProcess
+from slam.runtime.priority import ROLE_NICE
+from slam.runtime.worker import ProcessStage, WorkerCore
 
 
-def _report_priority(inbox, outbox) -> None:  # type: ignore[no-untyped-def]
-    outbox.put(READY)
-    # A thread started by the worker inherits the policy (the loop closer's and GTSAM's do).
-    seen: list[int] = []
-    t = threading.Thread(target=lambda: seen.append(os.sched_getscheduler(0)))
-    t.start()
-    t.join()
-    outbox.put((os.sched_getscheduler(0), seen[0], os.getpriority(os.PRIO_PROCESS, 0)))
-    while not isinstance(inbox.get(), EndOfStream):
-        pass
-    outbox.put("done")
+class _ReportPriority(WorkerCore):
+    def handle(self, msg: Any) -> list[Any]:
+        # A thread started by the worker inherits the policy (the loop closer's and GTSAM's do).
+        seen: list[int] = []
+        t = threading.Thread(target=lambda: seen.append(os.sched_getscheduler(0)))
+        t.start()
+        t.join()
+        return [
+            (
+                os.sched_getscheduler(0),
+                seen[0],
+                os.getpriority(os.PRIO_PROCESS, 0),
+                signal.getsignal(signal.SIGINT) == signal.SIG_IGN,
+            )
+        ]
 
 
-def _priority_of(nice: int, idle: bool) -> tuple[int, int, int]:
-    items: queue.Queue = queue.Queue()
+class _Probe(ProcessStage):
+    def __init__(self, role: str, idle: bool):
+        super().__init__("probe", 4, True, _ReportPriority, (), role=role, idle=idle)
+        self.got: list[Any] = []
 
-    def on_item(item: object) -> bool:
-        items.put(item)
-        return item == "done"
+    def process(self, msg: Any) -> None:
+        self.send(msg)
 
-    worker = WorkerProcess(
-        "prio-test", _report_priority, (), on_item, lambda: None, 60.0, nice, idle
-    )
-    try:
-        return items.get(timeout=60)
-    finally:
-        worker.stop(receive_timeout_s=30)
+    def on_output(self, item: Any) -> None:
+        self.got.append(item)
+
+
+def _priority_of(role: str, idle: bool) -> tuple[int, int, int, bool]:
+    stage = _Probe(role, idle)
+    stage.start()
+    stage.put("report")
+    stage.close()
+    stage.join(60)
+    assert stage.error is None and stage.final_seen.is_set()
+    return stage.got[0]
 
 
 @pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="SCHED_IDLE is Linux-only")
 def test_idle_worker_runs_under_sched_idle_with_its_nice_level() -> None:
     base = os.getpriority(os.PRIO_PROCESS, 0)
-    policy, thread_policy, nice = _priority_of(7, idle=True)
+    policy, thread_policy, nice, ignores_sigint = _priority_of("mapper", idle=True)
     assert policy == os.SCHED_IDLE and thread_policy == os.SCHED_IDLE
-    assert nice == min(base + 7, 19)
+    assert nice == min(base + ROLE_NICE["mapper"], 19)
+    assert ignores_sigint
 
 
 @pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="SCHED_IDLE is Linux-only")
-def test_normal_worker_keeps_the_normal_policy() -> None:
+def test_data_path_and_back_end_never_idle() -> None:
+    """The reader and the back end keep the normal policy even with ``idle_workers``: under
+    SCHED_IDLE they starve beside busy processes."""
     base = os.getpriority(os.PRIO_PROCESS, 0)
-    policy, thread_policy, nice = _priority_of(19, idle=False)
-    assert policy == os.SCHED_OTHER and thread_policy == os.SCHED_OTHER
-    assert nice == 19 or base >= 19
+    for role in ("backend", "reader"):
+        policy, thread_policy, nice, _ = _priority_of(role, idle=True)
+        assert policy == os.SCHED_OTHER and thread_policy == os.SCHED_OTHER
+        assert nice == min(base + ROLE_NICE[role], 19)

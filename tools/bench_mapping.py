@@ -161,7 +161,7 @@ def bench_sweep(seq, repeats: int, with_patchmatch: bool) -> dict:
                 "cpu_ms": 1e3 * cpu,
                 **depth_error(res.depth_m, depth, res.textured),  # type: ignore[attr-defined]
             }
-        # As the mapper worker runs it: 2 sweep threads, OpenCV's own pool off (mapping/stage.py).
+        # As the mapper worker runs it: 2 sweep threads, OpenCV's own pool off (slam/runtime/mapper.py).
         cv_threads = cv2.getNumThreads()
         cv2.setNumThreads(1)
         try:

@@ -33,7 +33,7 @@ def rss_mb(pid: int) -> float:
 def main(argv: list[str] | None = None) -> int:
     from datasets.synth import make_synthetic_sequence
     from slam.config import load_config
-    from slam.pipeline import run_slam
+    from slam.runtime.wiring import run_slam
 
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter

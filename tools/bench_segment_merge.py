@@ -24,7 +24,7 @@ from slam.evaluation.io import write_tum
 
 def main(argv: list[str] | None = None) -> int:
     from datasets.synth import make_synthetic_sequence
-    from slam.pipeline import run_slam
+    from slam.runtime.wiring import run_slam
     from tools.cli import main as slam_main
 
     parser = argparse.ArgumentParser(

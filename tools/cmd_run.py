@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import Any
 
 from slam.errors import SlamError
 
@@ -12,17 +13,23 @@ EPILOG = """\
 examples:
   slam run room.mcap --out run1                       # real time (sensor rate), no viewer
   slam run room.mcap --out run1 --speed max --rerun save:run1.rrd
-  slam run ~/data/V1_01_easy --out v101 --rerun spawn # an EuRoC folder, live viewer
+  slam run ~/data/V1_01_easy --out v101 --rerun spawn # an EuRoC folder, live viewer window
+  slam run room.mcap --out run1 --rerun serve --keep-viewer
+                                  # web viewer on this machine (prints its URL), kept after
   slam run bag.mcap --left-topic /left --right-topic /right --imu-topic /imu \\
            --camchain camchain.yaml --imu-yaml imu.yaml --out run2
   slam run room.mcap --out run1 --sequential          # one thread, deterministic output
+
+Ctrl-C (or SIGTERM) stops reading, ends every stage and writes every output for what was
+processed (exit code 130 / 143); a second Ctrl-C stops waiting for the stages.
 
 outputs in --out DIR (written atomically, also after Ctrl-C or a failure):
   trajectory.tum   every tracked frame, world_from_body (body = IMU), TUM seconds
   trajectory.csv   the same in the EuRoC ground-truth csv layout
   keyframes.tum    keyframe poses
-  stats.json       frames in/tracked/dropped, tracking losses, real-time factor,
-                   per-stage latency p50/p90/p99/max, peak memory
+  stats.json       frames in/tracked/dropped, tracking losses, real-time factor of the
+                   tracking and the end-of-run time beside it, per-stage latency
+                   p50/p90/p99/max, peak memory of the whole process tree
   config.yaml      the resolved configuration (reusable with --config)
   trajectory_loop_closed.tum   with loop closure on: every frame through its keyframe's
                    pose-graph correction
@@ -34,7 +41,7 @@ then score it:  slam eval ape SEQ DIR --align se3
 
 def register(sub: argparse._SubParsersAction) -> None:
     from slam.config import PRESETS
-    from slam.viz import RERUN_MODES
+    from slam.runtime.viewer import RERUN_MODES
 
     p = sub.add_parser(
         "run",
@@ -73,6 +80,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="dense mapping (plane sweep + TSDF in a worker process): writes mesh.ply and "
         "shows the mesh in rerun",
     )
+    p.add_argument(
+        "--keep-viewer",
+        action="store_true",
+        help="with --rerun serve: keep serving the final map after the run until Ctrl-C",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=handle)
 
@@ -91,7 +103,7 @@ def parse_speed(text: str) -> float:
 
 def handle(args: argparse.Namespace) -> int:
     from slam.config import load_config
-    from slam.pipeline import run_slam
+    from slam.runtime.wiring import run_slam
     from tools.seq_args import open_from_args
 
     out: Path = args.out
@@ -116,17 +128,57 @@ def handle(args: argparse.Namespace) -> int:
         cfg.mapping = dataclasses.replace(cfg.mapping, enabled=True)
     if not seq.calibration.is_stereo:
         raise SlamError(f"{seq.name}: the pipeline needs a stereo sequence (cam0 and cam1)")
-    result = run_slam(seq, cfg, args.out, args.rerun, progress=not args.no_progress)
-    s = result.stats
+    result = run_slam(
+        seq,
+        cfg,
+        args.out,
+        args.rerun,
+        progress=not args.no_progress,
+        keep_viewer=args.keep_viewer,
+    )
+    print_summary(result.stats, args.out)
+    code = exit_code(result)
+    if result.session is not None and result.session.web_url and args.keep_viewer and code == 0:
+        print(f"rerun web viewer still serving the run at {result.session.web_url}; Ctrl-C to stop")
+        try:
+            result.session.server_wait()
+        except KeyboardInterrupt:
+            pass
+    if result.session is not None:
+        result.session.stop_server()
+    return code
+
+
+def print_summary(s: dict, out: Path) -> None:
+    """The run's figures in a few lines (the same numbers as stats.json)."""
     fe = s["latency"]["frontend_frame"]
+    end = s.get("end_of_run_s")
+    parts = ", ".join(f"{k} {v:.1f} s" for k, v in (s.get("end_of_run_parts_s") or {}).items())
     print(
         f"{s['frames_tracked']}/{s['frames_in']} frames tracked, {s['frames_dropped']} dropped, "
-        f"{s['tracking_losses']} tracking losses, {s['keyframes']} keyframes; "
-        f"real-time factor {s['real_time_factor']:.2f}; front end p50 "
-        f"{fe.get('p50_ms', 0):.1f} ms p99 {fe.get('p99_ms', 0):.1f} ms; "
-        f"peak RSS {s['peak_rss_mb']:.0f} MB"
+        f"{s['tracking_losses']} tracking losses, {s['keyframes']} keyframes"
     )
-    print(f"outputs in {args.out}/ (trajectory.tum, trajectory.csv, keyframes.tum, stats.json)")
+    print(
+        f"tracking: real-time factor {s['real_time_factor']:.2f} "
+        f"({s['sequence_duration_s']:.1f} s of sequence in {s['tracking_wall_s']:.1f} s); "
+        f"front end p50 {fe.get('p50_ms', 0):.1f} ms p99 {fe.get('p99_ms', 0):.1f} ms"
+    )
+    if end is not None:
+        print(f"end of run: {end:.1f} s" + (f" ({parts})" if parts else ""))
+    print(f"peak memory of the process tree: {s['peak_rss_mb']:.0f} MB")
+    print(f"outputs in {out}/ (trajectory.tum, trajectory.csv, keyframes.tum, stats.json)")
+    frames = max(s["frames_in"], 1)
+    if 0 < s["frames_tracked"] < 0.5 * frames:
+        print(
+            f"WARNING: only {s['frames_tracked']} of {s['frames_in']} frames were tracked "
+            f"({100 * s['frames_tracked'] / frames:.0f} %): the trajectory covers less than half "
+            "of the sequence (see the events in stats.json)",
+            file=sys.stderr,
+        )
+
+
+def exit_code(result: Any) -> int:
+    """0; 1 for a stage failure or a run that tracked nothing; 128 + signal when stopped."""
     if result.error is not None:
         print(
             f"slam run: error: {result.error} (outputs saved for what was processed)",
@@ -134,6 +186,18 @@ def handle(args: argparse.Namespace) -> int:
         )
         return 1
     if result.interrupted:
-        print("slam run: interrupted; outputs saved for what was processed", file=sys.stderr)
-        return 130
+        print(
+            f"slam run: stopped by {result.stats.get('stopped_by') or 'SIGINT'}; outputs saved "
+            "for what was processed",
+            file=sys.stderr,
+        )
+        return result.exit_code or 130
+    s = result.stats
+    if s["frames_in"] > 0 and s["frames_tracked"] == 0:
+        print(
+            f"slam run: error: none of the {s['frames_in']} frames could be tracked (see the "
+            "events in stats.json: black or textureless images, a wrong calibration?)",
+            file=sys.stderr,
+        )
+        return 1
     return 0

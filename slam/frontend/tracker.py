@@ -38,7 +38,7 @@ from slam.geometry import (
     transform_points,
 )
 from slam.imu_buffer import ImuBuffer, integrate_gyro, propagate_pose
-from slam.messages import Estimate, Keyframe, StereoFrame, TrackingResult
+from slam.messages import Estimate, FrontendCorrection, Keyframe, StereoFrame, TrackingResult
 
 MAX_STORED_KEYFRAME_POSES = 200
 
@@ -70,7 +70,6 @@ class FrontEnd:
         cfg: FrontendConfig,
         imu: ImuBuffer | None = None,
         estimate_source: Callable[[], Estimate | None] | None = None,
-        on_reframe: Callable[[np.ndarray], None] | None = None,
         relocaliser: Any = None,
     ):
         if not calib.is_stereo:
@@ -79,7 +78,8 @@ class FrontEnd:
         self.cfg = cfg
         self.imu = imu
         self.estimate_source = estimate_source or (lambda: None)
-        self.on_reframe = on_reframe
+        self.corrections: list[FrontendCorrection] = []
+        """Corrections applied since the owner last took them (:meth:`take_corrections`)."""
         self.relocaliser = relocaliser  # slam.loop.relocaliser.Relocaliser, or None
         self.reframed = False
         self.cam0 = calib.cameras[0].intrinsics
@@ -119,6 +119,11 @@ class FrontEnd:
         self.gravity_m_s2 = calib.imu.gravity_m_s2 if calib.imu else 9.81
 
     # ------------------------------------------------------------------ feedback
+    def take_corrections(self) -> list[FrontendCorrection]:
+        """The corrections applied since the last call (for the stages that follow them)."""
+        out, self.corrections = self.corrections, []
+        return out
+
     def _apply_estimate(self) -> None:
         est = self.estimate_source()
         if est is None or not est.initialized:
@@ -137,13 +142,11 @@ class FrontEnd:
             return
         correction = nearest_rigid(est.world_from_body @ invert_transform(fe_pose))
         self.stats.estimate_corrections += 1
-        if not self.reframed:
-            # The first initialised estimate moves us from the VO frame (the first body pose)
-            # into the back end's gravity-aligned world: a change of frame, not a correction,
-            # so everything already output must move with it.
-            self.reframed = True
-            if self.on_reframe is not None:
-                self.on_reframe(correction)
+        # The first initialised estimate moves us from the VO frame (the first body pose)
+        # into the back end's gravity-aligned world: a change of frame, not a correction, so
+        # everything already output must move with it (``reframe``).
+        self.corrections.append(FrontendCorrection(est.t_ns, correction, not self.reframed))
+        self.reframed = True
         rot, trans = correction[:3, :3], correction[:3, 3]
         for lid in self.landmarks:
             self.landmarks[lid] = rot @ self.landmarks[lid] + trans

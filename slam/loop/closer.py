@@ -200,7 +200,7 @@ class LoopStats:
     verify_ms: list[float] = field(default_factory=list)
 
     def summary(self) -> dict[str, object]:
-        from slam.stage import latency_summary as pct
+        from slam.runtime.stage import latency_summary as pct
 
         return {
             "keyframes": self.keyframes,

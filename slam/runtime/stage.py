@@ -1,6 +1,8 @@
 """The pipeline stage: one loop, one bounded input queue, timing, error capture, shutdown.
 
-A stage implements ``process(msg)``. Concurrent mode runs it in its own thread, fed through a
+A stage implements ``process(msg)`` and hands what it makes to the stages the wiring connected
+to it (:meth:`Stage.connect`, :meth:`Stage.emit`): stages never read each other's state.
+Concurrent mode runs it in its own thread, fed through a
 bounded queue and ended by an :class:`EndOfStream` sentinel. Sequential mode (``threaded=False``)
 calls ``process`` directly from ``put``, so the whole pipeline runs depth-first in one thread in
 time order: deterministic, for tests and debugging. Both modes run the same code.
@@ -15,7 +17,7 @@ import threading
 import time
 import traceback
 from abc import ABC, abstractmethod
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -33,11 +35,20 @@ class StageError(RuntimeError):
         self.trace = trace
 
 
+class Consumer(Protocol):
+    """Anything a stage can hand messages to (a stage, the recorder)."""
+
+    def put(self, msg: Any, block: bool = True) -> bool: ...
+
+
 class Stage(ABC):
     """Base class of every pipeline stage."""
 
     def __init__(self, name: str, maxsize: int, threaded: bool):
         self.name = name
+        self.interrupted = False  # the run was stopped: skip queued input and optional end work
+        self.abandon: threading.Event | None = None  # set: stop waiting for anything, now
+        self._consumers: list[tuple[Consumer, bool, tuple[type, ...]]] = []
         self.threaded = threaded
         self.queue: queue.Queue[Any] = queue.Queue(maxsize=maxsize)
         self.latencies_ms: list[float] = []
@@ -56,6 +67,19 @@ class Stage(ABC):
     def on_end(self) -> None:
         """Called once after the last message (flush, pass EndOfStream downstream)."""
         return None
+
+    # -- connections -------------------------------------------------------------------------
+    def connect(self, consumer: Consumer, *types: type, block: bool = True) -> None:
+        """Hand every emitted message of ``types`` to ``consumer``, in connection order
+        (``block`` False: the consumer may drop them, e.g. the viewer)."""
+        self._consumers.append((consumer, block, types))
+
+    def emit(self, msg: Any, block: bool | None = None) -> None:
+        """Hand ``msg`` to every consumer connected for its type (``block`` overrides the
+        connection's)."""
+        for consumer, default, types in self._consumers:
+            if isinstance(msg, types):
+                consumer.put(msg, block=default if block is None else block)
 
     # -- plumbing ----------------------------------------------------------------------------
     def start(self) -> None:
@@ -80,26 +104,40 @@ class Stage(ABC):
             self.dropped += 1
             return False
 
-    def close(self) -> None:
-        """Signal end of input (the sentinel always gets through, even to a full queue)."""
+    def close(self, timeout_s: float | None = None) -> bool:
+        """Signal end of input (the sentinel gets through a full queue as the stage drains it;
+        ``timeout_s``: give up after that long, e.g. for a viewer stuck in a call). False when
+        it gave up."""
         if not self.threaded:
             self._finish()
-            return
+            return True
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while self._thread is not None and self._thread.is_alive():
             try:
                 self.queue.put(EndOfStream(), timeout=0.1)
-                return
+                return True
             except queue.Full:
-                continue
+                if deadline is not None and time.monotonic() > deadline:
+                    return False
+        return True
+
+    def interrupt(self) -> None:
+        """The run was stopped (Ctrl-C, SIGTERM): skip queued input; ``on_end`` still runs, with
+        :attr:`interrupted` set, so the stage's results so far are kept."""
+        self.interrupted = True
+        self._stop.set()
 
     def abort(self) -> None:
-        """Stop as soon as possible, discarding queued input (Ctrl-C or another stage failed)."""
+        """Stop as soon as possible, discarding queued input (another stage failed)."""
         self._stop.set()
         self.close()
 
-    def join(self, timeout: float | None = None) -> None:
+    def join(self, timeout: float | None = None) -> bool:
+        """Wait for the stage's thread; True when it has ended."""
         if self._thread is not None:
             self._thread.join(timeout)
+            return not self._thread.is_alive()
+        return True
 
     def _handle(self, msg: Any) -> None:
         t0 = time.perf_counter()

@@ -22,30 +22,15 @@ import multiprocessing as mp
 import queue
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
 from multiprocessing import shared_memory
 from typing import Any
 
 import numpy as np
 
 from datasets.sequence import Sequence
-from slam.messages import ImuBatch, ImuSample, StereoFrame
-from slam.worker import lower_priority, main_process_gone
-
-_END = "end"
-READER_NICE = 5
-
-
-@dataclass(frozen=True)
-class _Bundle:
-    """One frame and the IMU samples before it (or only samples, after the last frame)."""
-
-    imu: ImuBatch
-    t_ns: int | None = None  # None: no frame in this bundle
-    index: int = -1
-    slot: int = -1  # -1: the images are inline
-    shapes: tuple[tuple[int, ...], ...] = ()  # left[, right] in the slot
-    inline: tuple[np.ndarray | None, ...] = ()  # (left, right) when not in a slot
+from slam.messages import ImuBatch, ImuSample, ReaderBundle, ReaderEnd, StereoFrame
+from slam.runtime.priority import apply_role, ignore_stop_signals
+from slam.runtime.worker import main_process_gone
 
 
 def _slot_bytes(seq: Sequence) -> int:
@@ -55,34 +40,35 @@ def _slot_bytes(seq: Sequence) -> int:
 
 def _pack(
     imu: list[ImuSample], frame: StereoFrame | None, ring: Any, slot: int, slot_bytes: int
-) -> _Bundle:
+) -> ReaderBundle:
     batch = ImuBatch.from_samples(imu)
     if frame is None:
-        return _Bundle(batch)
+        return ReaderBundle(batch)
     images = [im for im in (frame.left, frame.right) if im is not None]
     fits = sum(im.nbytes for im in images) <= slot_bytes and all(
         im.dtype == np.uint8 for im in images
     )
     if slot < 0 or not fits:
-        return _Bundle(batch, frame.t_ns, frame.index, -1, (), (frame.left, frame.right))
+        return ReaderBundle(batch, frame.t_ns, frame.index, -1, (), (frame.left, frame.right))
     offset = slot * slot_bytes
     for im in images:
         np.ndarray(im.shape, np.uint8, ring.buf, offset)[...] = im
         offset += im.nbytes
     shapes = tuple(im.shape for im in images)
-    return _Bundle(batch, frame.t_ns, frame.index, slot, shapes)
+    return ReaderBundle(batch, frame.t_ns, frame.index, slot, shapes)
 
 
 def _reader(
     seq: Sequence, out: Any, free: Any, ring_name: str, slots: int, stop: Any, idle: bool
 ) -> None:
-    """The reader process: bundles, then ``(_END, warnings)`` or the exception.
+    """The reader process: bundles, then :class:`ReaderEnd` or the exception.
 
-    It runs at a lower priority (``idle``: SCHED_IDLE, :func:`slam.worker.lower_priority`): it
-    only has to stay a few frames ahead, the front end must answer each one. Slots are used
+    It runs at the reader role's priority (``slam.runtime.priority``): it is on the data path,
+    so it never runs under SCHED_IDLE (which starved it beside busy processes). Slots are used
     round robin; ``free`` counts the slots the consumer has emptied.
     """
-    lower_priority(READER_NICE, idle)
+    ignore_stop_signals()
+    apply_role("reader", idle)
 
     def wait_for_parent(step: Any) -> Any:
         while True:  # a killed main process never reads again: notice it and end
@@ -118,7 +104,7 @@ def _reader(
                 return
         if imu:
             wait_for_parent(lambda: out.put(_pack(imu, None, ring, -1, 0), timeout=1.0))
-        wait_for_parent(lambda: out.put((_END, list(seq.warnings)), timeout=1.0))
+        wait_for_parent(lambda: out.put(ReaderEnd(tuple(seq.warnings)), timeout=1.0))
     except (KeyboardInterrupt, SystemExit):
         return  # Ctrl-C is the main process's to handle; SystemExit: it has died
     except BaseException as exc:  # handed to the consumer, which re-raises it
@@ -127,7 +113,7 @@ def _reader(
         ring.close()
 
 
-def _unpack(bundle: _Bundle, ring: Any, slot_bytes: int) -> list[ImuSample | StereoFrame]:
+def _unpack(bundle: ReaderBundle, ring: Any, slot_bytes: int) -> list[ImuSample | StereoFrame]:
     msgs: list[ImuSample | StereoFrame] = list(bundle.imu.samples())
     if bundle.t_ns is None:
         return msgs
@@ -150,7 +136,7 @@ def prefetched_messages(
     seq: Sequence, frames_ahead: int = 8, idle: bool = False
 ) -> Iterator[ImuSample | StereoFrame]:
     """``seq.messages()``, decoded in a reader process at most ``frames_ahead`` frames ahead
-    (``idle``: the reader runs under SCHED_IDLE).
+    (``idle``: passed to the reader's priority role, which never idles).
 
     The reader starts at the first ``next()``; closing the generator (or leaving a ``for`` loop
     over it early) stops it. Warnings the reader collects are appended to ``seq.warnings`` at
@@ -181,8 +167,8 @@ def prefetched_messages(
                 continue
             if isinstance(item, BaseException):
                 raise item
-            if isinstance(item, tuple) and item[0] == _END:
-                seq.warnings.extend(w for w in item[1] if w not in seq.warnings)
+            if isinstance(item, ReaderEnd):
+                seq.warnings.extend(w for w in item.warnings if w not in seq.warnings)
                 return
             msgs = _unpack(item, ring, slot_bytes)
             if item.slot >= 0:
@@ -194,7 +180,7 @@ def prefetched_messages(
         while proc.is_alive() and time.monotonic() < deadline:
             try:  # unblock a reader waiting on a full queue or a slot; it then sees ``stop``
                 item = out.get(timeout=0.1)
-                if isinstance(item, _Bundle) and item.slot >= 0:
+                if isinstance(item, ReaderBundle) and item.slot >= 0:
                     free.release()
             except queue.Empty:
                 proc.join(timeout=0.1)

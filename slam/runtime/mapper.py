@@ -17,73 +17,27 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
+from mapping.config import MapperStageConfig
 from slam.calibration import Calibration
-from slam.messages import EndOfStream, Keyframe, MapperReport, MeshSnapshot
-from slam.stage import Stage, StageError, latency_summary
-from slam.worker import READY, WorkerProcess, receive
+from slam.messages import (
+    Keyframe,
+    LoopCorrection,
+    MapFinish,
+    MapKeyframe,
+    MapperReport,
+    MapperSummary,
+    MeshSnapshot,
+)
+from slam.runtime.stage import latency_summary
+from slam.runtime.worker import ProcessStage, WorkerCore
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class MapperStageConfig:
-    """The live mapper (``mapping`` in the run config)."""
-
-    enabled: bool = False
-    """Dense mapping during `slam run` (also `slam run --mesh`)."""
-    voxel_m: float = 0.02
-    """TSDF voxel size, metres."""
-    max_depth_m: float = 4.0
-    """Depths beyond this are not fused."""
-    depth_scale: float = 0.5
-    """Plane sweep at this fraction of the image size (0.5 is ~4x cheaper than full size)."""
-    num_planes: int = 96
-    """Plane-sweep depth hypotheses (inverse-depth sampled)."""
-    sweep_threads: int = 2
-    """Plane-sweep threads in the worker (a background process: SCHED_IDLE, see
-    ``player.idle_workers``, so it yields to tracking)."""
-    max_backlog: int = 4
-    """Keyframes waiting for the mapper; beyond that a keyframe is dropped (and counted)."""
-    mesh_every_s: float = 5.0
-    """Send a mesh snapshot to the viewer at most this often (marching cubes is not free)."""
-    final_reintegration: bool = True
-    """At the end, re-integrate keyframes whose final (optimised, loop-closed) pose moved."""
-
-
-@dataclass(frozen=True, eq=False)
-class _MapKeyframe:
-    t_ns: int
-    image_left: np.ndarray
-    image_right: np.ndarray | None
-    world_from_cam0: np.ndarray
-
-
-@dataclass(frozen=True, eq=False)
-class _Finish:
-    world_from_cam0_by_t: dict[int, np.ndarray]
-    mesh_path: str | None
-
-
-@dataclass
-class _MapperSummary:
-    fused: int = 0
-    skipped_static: int = 0
-    reintegrated: int = 0
-    vertices: int = 0
-    faces: int = 0
-    mesh_path: str | None = None
-    final_ms: float = 0.0
-    error: str | None = None
-    depth_ms: list[float] = field(default_factory=list)
-    fusion_ms: list[float] = field(default_factory=list)
 
 
 def _make_mapper(calib: Calibration, cfg: MapperStageConfig) -> Any:
@@ -112,18 +66,18 @@ def _snapshot(mapper: Any, t_ns: int) -> MeshSnapshot | None:
     return MeshSnapshot(t_ns, mesh.vertices_m, mesh.faces, mesh.normals, mesh.colors_rgb)
 
 
-def _add(mapper: Any, item: _MapKeyframe) -> MapperReport:
+def _add(mapper: Any, item: MapKeyframe) -> MapperReport:
     r = mapper.add_keyframe(item.t_ns, item.image_left, item.image_right, item.world_from_cam0)
     return MapperReport(r.t_ns, r.skipped, r.depth_ms, r.fusion_ms, r.blocks)
 
 
-def _finish(mapper: Any, request: _Finish) -> tuple[_MapperSummary, MeshSnapshot | None]:
+def _finish(mapper: Any, request: MapFinish) -> tuple[MapperSummary, MeshSnapshot | None]:
     """Re-integrate with the final poses, extract the mesh, write the PLY."""
     t0 = time.perf_counter()
     poses = request.world_from_cam0_by_t
     moved = mapper.update_poses(poses) if poses else 0
     final = _snapshot(mapper, 0)
-    summary = _MapperSummary(reintegrated=moved)
+    summary = MapperSummary(reintegrated=moved)
     if final is not None:
         summary.vertices, summary.faces = len(final.vertices_m), len(final.faces)
         if request.mesh_path:
@@ -137,57 +91,62 @@ def _finish(mapper: Any, request: _Finish) -> tuple[_MapperSummary, MeshSnapshot
     return summary, final
 
 
-def _worker(calib: Calibration, cfg: MapperStageConfig, inbox: Any, outbox: Any) -> None:
-    """The worker process: fuse keyframes, report, snapshot meshes, finish with mesh.ply."""
-    if cfg.sweep_threads > 1:
-        # The sweep's own threads take whole strips; OpenCV's pool inside each call on top of
-        # them only adds dispatch overhead (752x480, 64 planes, 2 views: 282-294 -> 270-276 ms).
-        cv2.setNumThreads(1)
-    try:
-        mapper = _make_mapper(calib, cfg)
-    except Exception as exc:
-        outbox.put(RuntimeError(f"mapper start failed: {type(exc).__name__}: {exc}"))
-        return
-    outbox.put(READY)
-    last_mesh = time.perf_counter()
-    while True:
-        msg = receive(inbox)
-        try:
-            if isinstance(msg, _MapKeyframe):
-                outbox.put(_add(mapper, msg))
-                if time.perf_counter() - last_mesh > cfg.mesh_every_s:
-                    snap = _snapshot(mapper, msg.t_ns)
-                    if snap is not None:
-                        outbox.put(snap)
-                    last_mesh = time.perf_counter()
-            elif isinstance(msg, _Finish):
-                summary, final = _finish(mapper, msg)
-                if final is not None:
-                    outbox.put(final)
-                outbox.put(summary)
-            elif isinstance(msg, EndOfStream):
-                break
-        except Exception as exc:  # reported by the stage with its name
-            outbox.put(RuntimeError(f"{type(exc).__name__}: {exc}"))
-            break
+class MapperCore(WorkerCore):
+    """The dense mapper behind the stage: fuses keyframes, reports, snapshots meshes."""
+
+    def __init__(self, calib: Calibration, cfg: MapperStageConfig):
+        if cfg.sweep_threads > 1:
+            # The sweep's own threads take whole strips; OpenCV's pool inside each call on top
+            # of them only adds dispatch overhead (752x480, 64 planes, 2 views: 282-294 ->
+            # 270-276 ms).
+            cv2.setNumThreads(1)
+        self.cfg = cfg
+        self.mapper = _make_mapper(calib, cfg)
+        self.last_mesh = time.perf_counter()
+
+    def handle(self, msg: Any) -> list[Any]:
+        if isinstance(msg, MapKeyframe):
+            out: list[Any] = [_add(self.mapper, msg)]
+            if time.perf_counter() - self.last_mesh > self.cfg.mesh_every_s:
+                snap = _snapshot(self.mapper, msg.t_ns)
+                if snap is not None:
+                    out.append(snap)
+                self.last_mesh = time.perf_counter()
+            return out
+        if isinstance(msg, MapFinish):
+            summary, final = _finish(self.mapper, msg)
+            return [summary] if final is None else [final, summary]
+        return []
 
 
-class MapperStage(Stage):
-    """Forwards keyframes to the mapper worker and collects its reports and meshes."""
+def _make_core(calib: Calibration, cfg: MapperStageConfig) -> MapperCore:
+    return MapperCore(calib, cfg)
+
+
+class MapperStage(ProcessStage):
+    """Forwards keyframes to the mapper core, collects its reports and emits its meshes."""
+
+    end_timeout_s = 600.0  # the final re-integration and mesh
 
     def __init__(
         self,
         calib: Calibration,
         cfg: MapperStageConfig,
-        on_mesh: Callable[[MeshSnapshot], None],
         threaded: bool,
         idle_worker: bool = False,
     ):
-        """``idle_worker``: run the worker process under SCHED_IDLE (:func:`lower_priority`)."""
-        super().__init__("mapper", maxsize=256, threaded=threaded)
+        """``idle_worker``: run the worker process under SCHED_IDLE (``slam.runtime.priority``)."""
+        super().__init__(
+            "mapper",
+            256,
+            threaded,
+            _make_core,
+            (calib, cfg),
+            role="mapper",
+            idle=idle_worker,
+        )
         self.cfg = cfg
         self.calib = calib
-        self.on_mesh = on_mesh
         self.body_from_cam0 = calib.cameras[0].body_from_cam
         self.sent: list[int] = []
         self.reports: list[MapperReport] = []
@@ -196,32 +155,19 @@ class MapperStage(Stage):
         self.dropped_lag = 0
         self.max_backlog_seen = 0
         self.max_lag_s = 0.0
+        self.loop_corrections = 0
         self._sent_wall: dict[int, float] = {}
         self.lag_wall_ms: list[float] = []
         """Per processed keyframe: wall time from its arrival here to its report (queue + work)."""
         self.lag_behind_ms: list[float] = []
         """Per processed keyframe: sequence time from it to the newest keyframe that had arrived
         when its report came back (how far behind the live front the mapper is)."""
-        self.summary = _MapperSummary()
+        self.summary = MapperSummary()
+        self._summary_seen = threading.Event()
         self._lock = threading.Lock()
-        self._done = threading.Event()
-        self.use_process = threaded
-        if self.use_process:
-            self._worker = WorkerProcess(
-                "mapper",
-                _worker,
-                (calib, cfg),
-                self._on_worker_item,
-                self._on_worker_died,
-                nice=10,  # the lowest priority of the pipeline: it only has to keep up on average
-                idle=idle_worker,
-            )
-        else:
-            self._mapper = _make_mapper(calib, cfg)
 
     # -- results -------------------------------------------------------------------------
-    def _handle_output(self, item: Any) -> bool:
-        """Returns True when the worker has finished."""
+    def on_output(self, item: Any) -> None:
         if isinstance(item, MapperReport):
             now = time.perf_counter()
             with self._lock:
@@ -233,54 +179,43 @@ class MapperStage(Stage):
                 if sent_at is not None:
                     self.lag_wall_ms.append((now - sent_at) * 1e3)
         elif isinstance(item, MeshSnapshot):
-            self.on_mesh(item)
-        elif isinstance(item, _MapperSummary):
+            self.emit(item, block=True if item.t_ns == 0 else None)  # the final mesh gets in
+        elif isinstance(item, MapperSummary):
             with self._lock:
                 self.summary = item
-            return True
-        elif isinstance(item, Exception):
-            self.error = StageError(self.name, item, "")
-            log.error("%s", self.error)
-            return True
-        return False
-
-    def _on_worker_item(self, item: Any) -> bool:
-        finished = self._handle_output(item)
-        if finished:
-            self._done.set()
-        return finished
-
-    def _on_worker_died(self) -> None:
-        if not self._done.is_set() and self.error is None:
-            self.error = StageError(self.name, RuntimeError("the mapper worker process died"), "")
-        self._done.set()
+            self._summary_seen.set()
 
     # -- stage -----------------------------------------------------------------------------
     def process(self, msg: Any) -> None:
+        if isinstance(msg, LoopCorrection):
+            # Counted for now: the final re-integration uses the loop-closed poses.
+            self.loop_corrections += 1
+            return
         if not isinstance(msg, Keyframe):
             return
         pose = msg.world_from_body_vo @ self.body_from_cam0
-        item = _MapKeyframe(msg.t_ns, msg.image_left, msg.image_right, pose)
+        item = MapKeyframe(msg.t_ns, msg.image_left, msg.image_right, pose)
         with self._lock:
             self.received += 1
             self.newest_t_ns = max(self.newest_t_ns, msg.t_ns)
             backlog = len(self.sent) - len(self.reports)
-        if not self.use_process:
-            self.sent.append(msg.t_ns)
-            self._sent_wall[msg.t_ns] = time.perf_counter()
-            self._handle_output(_add(self._mapper, item))
-            return
         self.max_backlog_seen = max(self.max_backlog_seen, backlog)
-        if backlog >= self.cfg.max_backlog:
+        if self.use_process and backlog >= self.cfg.max_backlog:
             self.dropped_lag += 1
             return
         with self._lock:
             self.sent.append(msg.t_ns)
             self._sent_wall[msg.t_ns] = time.perf_counter()
-        self._worker.put(item)
+        self.send(item)
 
-    def finish(self, final_world_from_body: dict[int, np.ndarray], mesh_path: Path | None) -> None:
-        """Re-integrate with the final keyframe poses (by t_ns) and write ``mesh_path``."""
+    def on_end(self) -> None:
+        """The worker stays up for :meth:`finish` (the final poses are known only later)."""
+
+    def finish(
+        self, final_world_from_body: dict[int, np.ndarray] | None, mesh_path: Path | None
+    ) -> None:
+        """Re-integrate with the final keyframe poses (by t_ns; None: none, e.g. after an
+        interruption), write ``mesh_path``, end the worker."""
         fused = set(self.sent)
         poses = (
             {
@@ -288,25 +223,16 @@ class MapperStage(Stage):
                 for t, p in final_world_from_body.items()
                 if int(t) in fused
             }
-            if self.cfg.final_reintegration
+            if self.cfg.final_reintegration and final_world_from_body
             else {}
         )
-        request = _Finish(poses, None if mesh_path is None else str(mesh_path))
-        if not self.use_process:
-            self.summary, final = _finish(self._mapper, request)
-            if final is not None:
-                self.on_mesh(final)
-            return
-        if not self._worker.is_alive():
-            return
-        self._worker.put(request)
-        self._done.wait(timeout=600)
-        self._worker.stop(receive_timeout_s=10)
-
-    def abort(self) -> None:
-        super().abort()
-        if self.use_process:
-            self._worker.terminate()
+        if self.error is None and not self.final_seen.is_set():
+            self.send(MapFinish(poses, None if mesh_path is None else str(mesh_path)))
+            deadline = time.monotonic() + self.end_timeout_s
+            while not self._summary_seen.wait(0.1) and time.monotonic() < deadline:
+                if self.final_seen.is_set() or (self.abandon and self.abandon.is_set()):
+                    break
+        self.end_worker()
 
     def stats(self) -> dict[str, Any]:
         """The ``mapping`` section of stats.json (lags in seconds, see the module docstring)."""
@@ -322,6 +248,7 @@ class MapperStage(Stage):
 
         return {
             "mode": "process" if self.use_process else "in-process",
+            "loop_corrections_received": self.loop_corrections,
             "keeps_up": self.dropped_lag == 0,
             "keyframes_received": self.received,
             "dropped_fraction": self.dropped_lag / max(self.received, 1),

@@ -1,0 +1,173 @@
+"""The back end as a pipeline stage: keyframes and IMU in, :class:`BackendOutput` out.
+
+GTSAM's Python bindings hold the GIL for the whole of every call, so a back-end update running
+in a thread of the front end's process stalls the front end for its duration. With
+``backend_process`` (the default) the estimator runs in a worker process
+(:class:`slam.runtime.worker.ProcessStage`); each estimate is published to the front end through
+a ``Latest`` slot (it never waits) and emitted to the connected stages. Sequential mode calls
+the estimator inline (deterministic).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from slam.backend.config import BackendConfig
+from slam.calibration import Calibration
+from slam.messages import BackendFinal, BackendOutput, Estimate, ImuBatch, ImuSample, Keyframe
+from slam.runtime.stage import Latest, latency_summary
+from slam.runtime.worker import ProcessStage, WorkerCore
+
+log = logging.getLogger(__name__)
+
+_NO_IMAGE = np.zeros((0, 0), np.uint8)  # a keyframe sent to the worker carries no images
+
+
+class _Estimator(WorkerCore):
+    """Wraps VioBackend: reports each keyframe's update and the estimator's state changes."""
+
+    def __init__(self, calib: Calibration, cfg: BackendConfig):
+        from slam.backend.smoother import VioBackend
+
+        self.backend = VioBackend(calib, cfg)
+        self.was_initialized = False
+        self.resets_seen = 0
+
+    def add_imu(self, batch: ImuBatch) -> None:
+        for sample in batch.samples():
+            self.backend.add_imu(sample)
+
+    def add_keyframe(self, kf: Keyframe) -> BackendOutput:
+        t0 = time.perf_counter()
+        est = self.backend.add_keyframe(kf)
+        update_ms = (time.perf_counter() - t0) * 1e3
+        events: list[str] = []
+        if est is not None and est.initialized and not self.was_initialized:
+            self.was_initialized = True
+            events.append(f"back end initialised at keyframe {kf.keyframe_id}")
+        resets = self.backend.stats.resets
+        if resets > self.resets_seen:
+            events.append(f"back end reset ({resets} so far)")
+            self.resets_seen = resets
+        return BackendOutput(est, kf.keyframe_id, update_ms, tuple(events))
+
+    def handle(self, msg: Any) -> list[Any]:
+        if isinstance(msg, ImuBatch):
+            self.add_imu(msg)
+            return []
+        if isinstance(msg, Keyframe):
+            return [self.add_keyframe(msg)]
+        return []
+
+    def finish(self, interrupted: bool) -> BackendFinal:
+        return BackendFinal(self.stats())
+
+    def stats(self) -> dict[str, Any]:
+        s = self.backend.stats
+        out: dict[str, Any] = {}
+        for key, value in vars(s).items():
+            if isinstance(value, (int, float, str)):
+                out[key] = value
+        out["failures"] = list(getattr(s, "failures", []))[:20]
+        imu_stats = getattr(self.backend.imu, "stats", None)
+        if imu_stats is not None:
+            out["imu"] = {k: v for k, v in vars(imu_stats).items() if isinstance(v, (int, float))}
+        return out
+
+
+def _make_core(calib: Calibration, cfg: BackendConfig) -> _Estimator:
+    return _Estimator(calib, cfg)
+
+
+class BackendStage(ProcessStage):
+    """Feeds the visual-inertial estimator, publishes its estimates and emits its outputs."""
+
+    def __init__(
+        self,
+        calib: Calibration,
+        cfg: BackendConfig,
+        latest: Latest,
+        threaded: bool,
+        use_process: bool,
+    ):
+        super().__init__(
+            "backend",
+            4000,
+            threaded,
+            _make_core,
+            (calib, cfg),
+            role="backend",
+            in_process=use_process,
+        )
+        self.latest = latest
+        self.update_ms: list[float] = []
+        self.keyframe_poses: dict[int, np.ndarray] = {}
+        self.final_stats: dict[str, Any] = {}
+        self._pending: list[ImuBatch] = []
+        self._pending_samples = 0
+        self._lock = threading.Lock()
+
+    def on_output(self, item: Any) -> None:
+        if not isinstance(item, BackendOutput):
+            return
+        with self._lock:
+            self.update_ms.append(item.update_ms)
+            est = item.estimate
+            if est is not None and est.initialized:
+                for kid, pose in est.keyframe_poses.items():
+                    self.keyframe_poses[kid] = pose
+        if item.estimate is not None:
+            self.latest.set(item.estimate)
+        self.emit(item)
+
+    def on_final(self, payload: Any) -> None:
+        if isinstance(payload, BackendFinal):
+            self.final_stats = payload.stats
+
+    def _flush_imu(self) -> None:
+        if not self._pending:
+            return
+        batch = ImuBatch.concatenate(self._pending)
+        self._pending = []
+        self._pending_samples = 0
+        self.send(batch)
+
+    def process(self, msg: Any) -> None:
+        if isinstance(msg, ImuSample):
+            msg = ImuBatch.from_samples([msg])
+        if isinstance(msg, ImuBatch):
+            if self.use_process:
+                self._pending.append(msg)
+                self._pending_samples += len(msg)
+                if self._pending_samples >= 50:
+                    self._flush_imu()
+            else:
+                self.send(msg)
+        elif isinstance(msg, Keyframe):
+            if self.use_process:
+                self._flush_imu()
+                # The estimator uses the observations only: not pickling and piping the two
+                # images (~720 KB, written in 64 KB pieces that each take the GIL again) keeps
+                # that work off the front end's GIL.
+                self.send(dataclasses.replace(msg, image_left=_NO_IMAGE, image_right=None))
+            else:
+                self.send(msg)
+
+    def on_end(self) -> None:
+        if self.use_process and not self.interrupted:
+            self._flush_imu()
+        self.end_worker()
+
+    def estimate(self) -> Estimate | None:
+        value: Estimate | None = self.latest.get()
+        return value
+
+    def update_stats(self) -> dict[str, float]:
+        with self._lock:
+            return latency_summary(list(self.update_ms))

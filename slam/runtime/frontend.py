@@ -1,0 +1,29 @@
+"""The front end as a pipeline stage: every frame in; tracking results, keyframes and the front
+end's corrections out."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from slam.frontend.tracker import FrontEnd
+from slam.messages import StereoFrame
+from slam.runtime.stage import Stage
+
+
+class FrontendStage(Stage):
+    """Runs the front end on each frame and emits what it made, in this order: the
+    :class:`FrontendCorrection`\\ s it applied, the :class:`TrackingResult`, the
+    :class:`Keyframe` if it made one."""
+
+    def __init__(self, frontend: FrontEnd, threaded: bool, queue_size: int):
+        super().__init__("frontend", maxsize=queue_size, threaded=threaded)
+        self.frontend = frontend
+
+    def process(self, msg: Any) -> None:
+        assert isinstance(msg, StereoFrame)
+        result, keyframe = self.frontend.process(msg)
+        for correction in self.frontend.take_corrections():
+            self.emit(correction)
+        self.emit(result)
+        if keyframe is not None:
+            self.emit(keyframe)

@@ -1,0 +1,64 @@
+"""Scheduling priorities of a run's processes and threads (Linux; elsewhere nothing changes).
+
+One table says how much each part of the pipeline yields to the others. The front end answers
+every frame and keeps the normal priority; the reader is on the data path and must never
+starve; the back end must stay fresh; loop closure and the mapper only have to keep up on
+average. Why these numbers, measured beside busy processes: BENCHMARKS.md ("Priorities").
+
+A process can only lower its own priority without privileges, never raise it back, so the
+scheme is fixed at start. ``SCHED_IDLE`` is never used by default: a SCHED_IDLE process gets
+*no* CPU while normal-priority work keeps every core busy (measured: a real-time run beside
+two busy processes processed 21 s of a 115 s sequence in 827 s, its SCHED_IDLE reader
+starved). ``player.idle_workers: true`` restores it for the background workers on a machine
+that is known to be otherwise idle.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+
+ROLE_NICE: dict[str, int] = {
+    "frontend": 0,
+    "reader": 0,
+    "backend": 2,
+    "loop": 5,
+    "mapper": 10,
+}
+"""Nice level added to each role's process (the front end's is the main process's)."""
+
+IDLE_ROLES = frozenset({"loop", "mapper"})
+"""Roles that run under SCHED_IDLE when ``player.idle_workers`` is set."""
+
+
+def lower_priority(increment: int, idle: bool = False) -> None:
+    """Lower the calling process's priority by ``increment`` nice levels; ``idle`` also puts it
+    under ``SCHED_IDLE``. Threads it starts later inherit both. Errors (not permitted, not
+    Linux) leave the priority as it was."""
+    if increment > 0:
+        try:
+            os.nice(increment)
+        except OSError:
+            pass
+    if idle and hasattr(os, "sched_setscheduler") and hasattr(os, "SCHED_IDLE"):
+        try:
+            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+        except OSError:
+            pass
+
+
+def apply_role(role: str, idle_workers: bool = False) -> None:
+    """Give the calling (worker) process its role's priority."""
+    lower_priority(ROLE_NICE.get(role, 0), idle_workers and role in IDLE_ROLES)
+
+
+def ignore_stop_signals() -> None:
+    """In a worker process: leave SIGINT and SIGTERM to the main process.
+
+    Ctrl-C in a terminal sends SIGINT to every process of the foreground group; a worker that
+    died of it would lose its results (and print a traceback). The main process ends the
+    workers in order instead; a worker whose main process dies ends by itself
+    (:func:`slam.runtime.worker.main_process_gone`).
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)

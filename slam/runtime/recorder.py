@@ -1,0 +1,116 @@
+"""The recorder: what the run's outputs are made of, collected from the stages' messages.
+
+It is a consumer like a stage (``put``) but does no work of its own: the front end's
+:class:`TrackingResult`, the back end's :class:`BackendOutput` events and the loop closer's
+:class:`LoopCorrection` are kept (thread-safe) for the outputs, the summary and stats.json.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+import numpy as np
+
+from slam.messages import BackendOutput, FrontendCorrection, LoopCorrection, TrackingResult
+from slam.output import trajectory_from_poses
+from slam.runtime.stage import latency_summary
+from slam.trajectory import Trajectory
+
+
+class Recorder:
+    """Collects per-frame results and events for the outputs (thread-safe)."""
+
+    def __init__(self, start_ns: int) -> None:
+        self._lock = threading.Lock()
+        self.start_ns = start_ns
+        self.poses: list[tuple[int, np.ndarray]] = []
+        self.pose_segments: list[int] = []
+        self.keyframes: list[tuple[int, np.ndarray]] = []
+        self.frontend_latency_ms: list[float] = []
+        self.frontend_cpu_ms: list[float] = []
+        self.frontend_runqueue_ms: list[float] = []  # empty where the OS does not report it
+        self.states: dict[str, int] = {}
+        self.last_state = ""
+        self.keyframe_times: dict[int, int] = {}
+        self.events: list[tuple[int, str]] = []
+        self.initialised_after_s: float | None = None
+
+    # -- consumer ------------------------------------------------------------------------------
+    def put(self, msg: Any, block: bool = True) -> bool:
+        if isinstance(msg, TrackingResult):
+            self._add(msg)
+        elif isinstance(msg, FrontendCorrection) and msg.reframe:
+            self._reframe(msg.new_from_old)
+        elif isinstance(msg, BackendOutput):
+            est = msg.estimate
+            t_ns = est.t_ns if est is not None else 0
+            for text in msg.events:
+                self.event(t_ns, text)
+                if "initialised" in text and self.initialised_after_s is None:
+                    self.initialised_after_s = (t_ns - self.start_ns) * 1e-9
+        elif isinstance(msg, LoopCorrection):
+            self.event(
+                msg.t_ns,
+                f"loop closed: keyframe {msg.query_keyframe_id} -> {msg.match_keyframe_id} "
+                f"({msg.inliers} inliers)",
+            )
+        return True
+
+    def _add(self, res: TrackingResult) -> None:
+        with self._lock:
+            self.frontend_latency_ms.append(res.latency_ms)
+            self.frontend_cpu_ms.append(res.cpu_ms)
+            if res.runqueue_ms >= 0:
+                self.frontend_runqueue_ms.append(res.runqueue_ms)
+            self.states[res.state] = self.states.get(res.state, 0) + 1
+            self.last_state = res.state
+            if res.world_from_body is not None:
+                self.poses.append((res.t_ns, res.world_from_body))
+                self.pose_segments.append(res.segment_id)
+                if res.is_keyframe:
+                    self.keyframes.append((res.t_ns, res.world_from_body))
+                    self.keyframe_times[res.keyframe_id] = res.t_ns
+
+    def _reframe(self, new_from_old: np.ndarray) -> None:
+        """Re-express every pose recorded so far in a new world frame (the back end's
+        gravity-aligned world, at its initialisation)."""
+        with self._lock:
+            self.poses = [(t, new_from_old @ p) for t, p in self.poses]
+            self.keyframes = [(t, new_from_old @ p) for t, p in self.keyframes]
+
+    def event(self, t_ns: int, text: str) -> None:
+        with self._lock:
+            self.events.append((t_ns, text))
+
+    # -- reading -------------------------------------------------------------------------------
+    def keyframe_times_copy(self) -> dict[int, int]:
+        """Keyframe id -> t_ns of every keyframe recorded so far."""
+        with self._lock:
+            return dict(self.keyframe_times)
+
+    def segments_of_first(self, n: int) -> np.ndarray:
+        """Map segment of each of the first ``n`` recorded poses (poses are only appended)."""
+        with self._lock:
+            return np.array(self.pose_segments[:n])
+
+    def frontend_breakdown(self) -> dict[str, dict[str, float]]:
+        """Latency summaries of the front end's CPU time, wait (latency - CPU) and, of that
+        wait, run-queue time (runnable without a CPU); the rest of the wait is the GIL or
+        sleeping (``slam.cputime``)."""
+        with self._lock:
+            lat = np.asarray(self.frontend_latency_ms)
+            cpu = np.asarray(self.frontend_cpu_ms)
+            rq = list(self.frontend_runqueue_ms)
+        out = {
+            "frontend_frame_cpu": latency_summary(cpu.tolist()),
+            "frontend_frame_wait": latency_summary(np.maximum(lat - cpu, 0.0).tolist()),
+        }
+        if rq:
+            out["frontend_frame_runqueue"] = latency_summary(rq)
+        return out
+
+    def snapshot(self) -> tuple[Trajectory, Trajectory, list[float]]:
+        with self._lock:
+            poses, kfs, lat = list(self.poses), list(self.keyframes), list(self.frontend_latency_ms)
+        return trajectory_from_poses(poses), trajectory_from_poses(kfs), lat

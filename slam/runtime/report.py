@@ -1,0 +1,232 @@
+"""Ending a run and reporting it: stages ended in order within bounded time, the end-of-run
+work timed on its own, stats.json and the output files.
+
+The run's real-time factor is the tracking's: sequence time over the wall time until the front
+end has answered the last frame. The end-of-run work (the back end's last updates, the loop
+closer's global adjustment, the mapper's re-integration and mesh) comes after it and is
+reported beside it (``end_of_run_s`` and its parts), never folded in.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from datasets.sequence import Sequence
+from slam.config import SlamConfig, config_to_yaml
+from slam.output import write_run_outputs
+from slam.runtime.control import RunControl
+from slam.runtime.end_of_run import (
+    final_keyframe_poses,
+    keyframe_trajectory,
+    loop_closed_trajectory,
+)
+from slam.runtime.memory import TreeMemory
+from slam.runtime.player import PlayState, real_time_factor
+from slam.runtime.stage import StageError, latency_summary
+from slam.runtime.viewer import ViewerSession
+from slam.trajectory import Trajectory
+
+if TYPE_CHECKING:
+    from slam.runtime.wiring import Pipeline
+
+
+@dataclass
+class RunTimes:
+    """Wall-clock marks of a run (``time.perf_counter`` seconds)."""
+
+    t_wall0: float
+    tracking_end: float | None = None  # the front end answered its last frame
+    end: float | None = None  # every output written
+    parts_s: dict[str, float] = field(default_factory=dict)  # end-of-run work by stage
+
+    def tracking_s(self, now: float) -> float:
+        return (self.tracking_end or now) - self.t_wall0
+
+
+@dataclass
+class RunResult:
+    """What a run produced."""
+
+    out_dir: Path | None
+    trajectory: Trajectory
+    keyframes: Trajectory
+    stats: dict[str, Any]
+    interrupted: bool = False
+    error: StageError | None = None
+    warnings: list[str] = field(default_factory=list)
+    loop_closed: Trajectory | None = None
+    exit_code: int = 0  # 128 + the signal that stopped the run, else 0
+    session: ViewerSession | None = None  # the viewer, for serving the final map after the run
+
+
+def _smoothed(p: Pipeline) -> Any:
+    """Whether the back end estimated a keyframe (always, without a back end)."""
+    backend = p.backend
+    return lambda kid: backend is None or kid in backend.keyframe_poses
+
+
+def _trajectories(p: Pipeline) -> tuple[Trajectory, Trajectory, Trajectory | None]:
+    traj, kfs, _ = p.recorder.snapshot()
+    kfs = keyframe_trajectory(kfs, p.backend, p.recorder)
+    closed = (
+        None if p.loop is None else loop_closed_trajectory(traj, p.loop, _smoothed(p), p.recorder)
+    )
+    return traj, kfs, closed
+
+
+def make_stats(
+    p: Pipeline,
+    seq: Sequence,
+    cfg: SlamConfig,
+    state: PlayState,
+    times: RunTimes,
+    memory: TreeMemory,
+    control: RunControl,
+    error: StageError | None,
+) -> dict[str, Any]:
+    now = time.perf_counter()
+    _, _, lat = p.recorder.snapshot()
+    fe = p.frontend.frontend.stats
+    tracking_s = times.tracking_s(now)
+    end_s = None if times.tracking_end is None else (times.end or now) - times.tracking_end
+    roles = {pid: s.name for s in p.stages if (pid := getattr(s, "worker_pid", None))}
+    mem = memory.summary(roles)
+    loop_stats = None if p.loop is None else p.loop.stats()
+    return {
+        "sequence": seq.name,
+        "preset": cfg.preset,
+        "frames_in": state.frames_in,
+        "frames_processed": fe.frames,
+        "frames_tracked": fe.tracked,
+        "frames_dropped": state.frames_dropped,
+        "frames_lost": fe.lost_frames,
+        "tracking_losses": fe.tracking_losses,
+        "map_segments": fe.segments,
+        "keyframes": fe.keyframes,
+        "sequence_duration_s": state.sequence_s,
+        "real_time_factor": real_time_factor(state.sequence_s, tracking_s),
+        "tracking_wall_s": tracking_s,
+        "end_of_run_s": end_s,
+        "end_of_run_parts_s": dict(times.parts_s),
+        "wall_time_s": (times.end or now) - times.t_wall0,
+        "speed": cfg.player.speed,
+        "sequential": cfg.player.sequential,
+        "latency": {
+            "frontend_frame": latency_summary(lat),
+            **p.recorder.frontend_breakdown(),
+            **{f"stage_{s.name}": s.latency_stats() for s in p.stages},
+        },
+        "peak_rss_mb": mem["total_peak_mb"],
+        "memory": mem,
+        "loop_closure": loop_stats,
+        "mapping": None if p.mapper is None else p.mapper.stats(),
+        "relocalisations": fe.relocalisations,
+        "imu_bridged_losses": fe.imu_bridged,
+        "track_refits": {"attempted": fe.track_refits, "kept": fe.track_refits_kept},
+        "backend": None
+        if p.backend is None
+        else {
+            "mode": "process" if p.backend.use_process else "in-process",
+            "update": p.backend.update_stats(),
+            "initialised_after_s": p.recorder.initialised_after_s,
+            **p.backend.final_stats,
+        },
+        "events": [{"t_ns": t, "event": e} for t, e in sorted(fe.state_log + p.recorder.events)],
+        "sequence_warnings": list(seq.warnings),
+        "interrupted": control.stop.is_set(),
+        "stopped_by": control.signal_name or None,
+        "stages_timed_out": [s.name for s in p.stages if getattr(s, "timed_out", False)],
+        "error": str(error) if error else None,
+    }
+
+
+def write_outputs(
+    out_dir: Path,
+    p: Pipeline,
+    seq: Sequence,
+    cfg: SlamConfig,
+    state: PlayState,
+    times: RunTimes,
+    memory: TreeMemory,
+    control: RunControl,
+    final: bool,
+    error: StageError | None = None,
+) -> None:
+    """Write every output for what has been processed so far (atomically, file by file)."""
+    traj, kfs, closed = _trajectories(p)
+    extra = {} if closed is None else {"trajectory_loop_closed": closed}
+    stats = make_stats(p, seq, cfg, state, times, memory, control, error)
+    write_run_outputs(out_dir, traj, kfs, stats, config_to_yaml(cfg), extra)
+
+
+def _end_stage(stage: Any, control: RunControl, times: RunTimes) -> None:
+    t0 = time.perf_counter()
+    stage.close()
+    while not stage.join(timeout=0.2):
+        if control.abandon.is_set():
+            stage.abort()
+            break
+    times.parts_s[stage.name] = round(time.perf_counter() - t0, 3)
+
+
+def end_run(
+    p: Pipeline,
+    seq: Sequence,
+    cfg: SlamConfig,
+    out_dir: Path | None,
+    state: PlayState,
+    times: RunTimes,
+    memory: TreeMemory,
+    control: RunControl,
+    progress: bool,
+) -> RunResult:
+    """End every stage in wiring order (bounded), do the end-of-run work, write the outputs."""
+    interrupted = control.stop.is_set()
+    failed = state.error or next((s.error for s in p.stages if s.error is not None), None)
+    if interrupted:
+        for s in p.stages:
+            s.interrupt()
+    _end_stage(p.frontend, control, times)
+    times.tracking_end = time.perf_counter()
+    times.parts_s.clear()
+    if p.backend is not None:
+        _end_stage(p.backend, control, times)
+    if p.loop is not None:
+        if progress and not interrupted:
+            print("loop closure: global adjustment ...", flush=True)
+        _end_stage(p.loop, control, times)
+    traj, kfs, closed = _trajectories(p)
+    if p.mapper is not None:
+        t0 = time.perf_counter()
+        final = None
+        if not interrupted and p.mapper.error is None:
+            final = final_keyframe_poses(kfs, p.loop, closed, _smoothed(p), p.recorder)
+            if progress:
+                print("dense mapping: final re-integration and mesh ...", flush=True)
+        p.mapper.finish(final, None if out_dir is None else Path(out_dir) / "mesh.ply")
+        _end_stage(p.mapper, control, times)
+        times.parts_s["mapper"] = round(time.perf_counter() - t0, 3)
+    if p.viewer is not None:
+        p.viewer.close(timeout_s=5.0)
+        p.viewer.join(timeout=5.0)  # a stuck viewer thread is a daemon: the run ends anyway
+    error = failed or next((s.error for s in p.stages if s.error is not None), None)
+    times.end = time.perf_counter()
+    memory.stop()
+    stats = make_stats(p, seq, cfg, state, times, memory, control, error)
+    if out_dir is not None:
+        extra = {} if closed is None else {"trajectory_loop_closed": closed}
+        write_run_outputs(out_dir, traj, kfs, stats, config_to_yaml(cfg), extra)
+    return RunResult(
+        out_dir,
+        traj,
+        kfs,
+        stats,
+        interrupted,
+        error,
+        list(seq.warnings),
+        closed,
+        control.exit_code,
+    )

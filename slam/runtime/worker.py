@@ -1,0 +1,301 @@
+"""The process-backed stage: a stage whose work runs in a worker process, or inline.
+
+GTSAM holds the GIL for whole calls and the mapper's numpy work is heavy, so the back end, the
+loop closer and the mapper each run their :class:`WorkerCore` in a spawned worker process in
+concurrent runs (threads are running, so no fork), and inline in sequential runs: the same code
+either way. One typed protocol (``slam.messages``): the worker sends :class:`WorkerReady` once
+it can work, any outputs, and after :class:`EndOfStream` a :class:`WorkerFinal` with what the
+stage returns at the end, or :class:`WorkerFailed` and ends. A worker that ends without either
+died: that is an error of its own.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import queue
+import threading
+import time
+import traceback
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from typing import Any
+
+from slam.messages import EndOfStream, WorkerFailed, WorkerFinal, WorkerReady
+from slam.runtime.priority import apply_role, ignore_stop_signals
+from slam.runtime.stage import Stage, StageError
+
+
+class WorkerCore(ABC):
+    """The part of a stage that may run in a worker process: messages in, outputs out."""
+
+    @abstractmethod
+    def handle(self, msg: Any) -> list[Any]:
+        """Outputs for one input message (sent back to the stage in order)."""
+
+    def finish(self, interrupted: bool) -> Any:
+        """What the stage gets at the end (``interrupted``: skip optional work)."""
+        return None
+
+
+def main_process_gone() -> bool:
+    """In a spawned child: has the process that started it died (the child was re-parented)?
+
+    A killed main process (SIGKILL, OOM) cannot tell its children to stop; a child blocked on
+    a queue or semaphore would wait forever, so it polls and asks this.
+    """
+    parent = mp.parent_process()
+    return parent is not None and os.getppid() != parent.pid
+
+
+def receive(inbox: Any, poll_s: float = 1.0) -> Any:
+    """The next message of a worker's inbox; ends the worker if the main process has died."""
+    while True:
+        try:
+            return inbox.get(timeout=poll_s)
+        except queue.Empty:
+            if main_process_gone():
+                raise SystemExit(0) from None
+
+
+def _failed(exc: BaseException) -> WorkerFailed:
+    return WorkerFailed(f"{type(exc).__name__}: {exc}", traceback.format_exc())
+
+
+def _worker_main(
+    make_core: Callable[..., WorkerCore],
+    args: tuple[Any, ...],
+    role: str,
+    idle: bool,
+    inbox: Any,
+    outbox: Any,
+    hurry: Any,
+) -> None:
+    """A worker process: build the core, answer every message, finish on EndOfStream.
+
+    ``hurry`` (an event): the run was interrupted; skip the backlog and finish at once.
+    """
+    ignore_stop_signals()
+    apply_role(role, idle)
+    try:
+        core = make_core(*args)
+    except Exception as exc:
+        outbox.put(_failed(exc))
+        return
+    outbox.put(WorkerReady(os.getpid()))
+    interrupted = False
+    while True:
+        msg = receive(inbox)
+        if isinstance(msg, EndOfStream):
+            interrupted = msg.interrupted
+            break
+        if hurry.is_set():
+            continue
+        try:
+            for out in core.handle(msg):
+                outbox.put(out)
+        except Exception as exc:
+            outbox.put(_failed(exc))
+            return
+    try:
+        final = core.finish(interrupted or hurry.is_set())
+    except Exception as exc:
+        outbox.put(_failed(exc))
+        return
+    outbox.put(WorkerFinal(final))
+
+
+class WorkerProcess:
+    """One spawned worker and the thread that receives its output."""
+
+    def __init__(
+        self,
+        name: str,
+        make_core: Callable[..., WorkerCore],
+        args: tuple[Any, ...],
+        on_item: Callable[[Any], bool],
+        on_died: Callable[[int | None], None],
+        role: str,
+        idle: bool = False,
+        start_timeout_s: float = 120.0,
+    ):
+        """``on_item(item) -> True`` for the worker's last item; ``on_died(exit code)`` when the
+        process ended without one."""
+        ctx = mp.get_context("spawn")
+        self.name = name
+        self.inbox: Any = ctx.Queue()
+        self.outbox: Any = ctx.Queue()
+        self.hurry: Any = ctx.Event()
+        self.proc = ctx.Process(
+            target=_worker_main,
+            args=(make_core, args, role, idle, self.inbox, self.outbox, self.hurry),
+            daemon=True,
+            name=f"slam-{name}",
+        )
+        self.proc.start()
+        first: Any = None
+        deadline = time.monotonic() + start_timeout_s
+        while first is None and time.monotonic() < deadline:
+            try:
+                first = self.outbox.get(timeout=0.5)
+            except queue.Empty:
+                if not self.proc.is_alive():
+                    break
+        if not isinstance(first, WorkerReady):
+            self.terminate()
+            detail = f": {first.error}" if isinstance(first, WorkerFailed) else ""
+            raise RuntimeError(f"the {name} worker process did not start{detail}")
+        self.pid = first.pid
+        self._on_item = on_item
+        self._on_died = on_died
+        self.receiver = threading.Thread(target=self._receive, name=f"{name}-rx", daemon=True)
+        self.receiver.start()
+
+    def _receive(self) -> None:
+        while True:
+            try:
+                item = self.outbox.get(timeout=0.5)
+            except queue.Empty:
+                if not self.proc.is_alive():
+                    self._on_died(self.proc.exitcode)
+                    return
+                continue
+            if self._on_item(item):
+                return
+
+    def put(self, msg: Any) -> None:
+        self.inbox.put(msg)
+
+    def is_alive(self) -> bool:
+        return self.proc.is_alive()
+
+    def stop(self, interrupted: bool, timeout_s: float, abandon: threading.Event | None) -> bool:
+        """End of input: wait up to ``timeout_s`` (or until ``abandon`` is set) for the worker's
+        last output, then end the process. False when it had to be terminated."""
+        if interrupted:
+            self.hurry.set()
+        self.inbox.put(EndOfStream(interrupted=interrupted))
+        deadline = time.monotonic() + timeout_s
+        while self.receiver.is_alive() and time.monotonic() < deadline:
+            if abandon is not None and abandon.is_set():
+                break
+            self.receiver.join(timeout=0.1)
+        finished = not self.receiver.is_alive()
+        if finished:
+            self.proc.join(timeout=5)
+        self.terminate()
+        return finished
+
+    def terminate(self) -> None:
+        if self.proc.is_alive():
+            self.proc.terminate()
+            self.proc.join(timeout=2)
+        # Nobody will read what is still buffered for a dead worker: without this, the inbox's
+        # feeder thread blocks the interpreter's exit on a full pipe (seen after a worker
+        # failure: `slam run` printed its outputs, then hung).
+        self.inbox.cancel_join_thread()
+
+
+class ProcessStage(Stage):
+    """A stage whose :class:`WorkerCore` runs in a worker process (concurrent runs, unless
+    ``in_process`` is False) or inline in the stage's own thread.
+
+    Subclasses implement :meth:`process` (what to send, with :meth:`send`), :meth:`on_output`
+    and :meth:`on_final`. Ends: :meth:`end_worker` (called from ``on_end`` unless a subclass
+    defers it) waits at most ``end_timeout_s`` for the final item.
+    """
+
+    end_timeout_s = 120.0
+
+    def __init__(
+        self,
+        name: str,
+        maxsize: int,
+        threaded: bool,
+        make_core: Callable[..., WorkerCore],
+        args: tuple[Any, ...],
+        *,
+        role: str,
+        in_process: bool = True,
+        idle: bool = False,
+    ):
+        super().__init__(name, maxsize=maxsize, threaded=threaded)
+        self.use_process = threaded and in_process
+        self.final_seen = threading.Event()
+        self.timed_out = False
+        self.worker_pid: int | None = None
+        self._proc: WorkerProcess | None = None
+        self._core: WorkerCore | None = None
+        if self.use_process:
+            self._proc = WorkerProcess(
+                name, make_core, args, self._on_item, self._on_died, role, idle
+            )
+            self.worker_pid = self._proc.pid
+        else:
+            self._core = make_core(*args)
+
+    # -- to implement ------------------------------------------------------------------------
+    def on_output(self, item: Any) -> None:
+        """One output of the core (in the receiver thread, or inline)."""
+
+    def on_final(self, payload: Any) -> None:
+        """The core's final payload."""
+
+    # -- plumbing ----------------------------------------------------------------------------
+    def send(self, msg: Any) -> None:
+        """Hand a message to the core (its outputs come back through :meth:`on_output`)."""
+        if self._proc is not None:
+            self._proc.put(msg)
+            return
+        assert self._core is not None
+        for out in self._core.handle(msg):
+            self._on_item(out)
+
+    def _on_item(self, item: Any) -> bool:
+        if isinstance(item, WorkerFailed):
+            if self.error is None:
+                self.error = StageError(self.name, RuntimeError(item.error), item.trace)
+            self.final_seen.set()
+            return True
+        if isinstance(item, WorkerFinal):
+            self.on_final(item.payload)
+            self.final_seen.set()
+            return True
+        self.on_output(item)
+        return False
+
+    def _on_died(self, exit_code: int | None) -> None:
+        if not self.final_seen.is_set() and self.error is None:
+            self.error = StageError(
+                self.name,
+                RuntimeError(f"the {self.name} worker process died (exit code {exit_code})"),
+                "",
+            )
+        self.final_seen.set()
+
+    def on_end(self) -> None:
+        self.end_worker()
+
+    def end_worker(self) -> None:
+        """Send the end of input and take the final item (bounded by ``end_timeout_s``)."""
+        if self.final_seen.is_set():
+            return
+        if self._proc is None:
+            assert self._core is not None
+            self._on_item(WorkerFinal(self._core.finish(self.interrupted)))
+            return
+        timeout = self.end_timeout_s
+        if not self._proc.stop(self.interrupted, timeout, self.abandon):
+            self.timed_out = True
+            if self.error is None and not self.interrupted:
+                self.error = StageError(
+                    self.name,
+                    RuntimeError(f"the {self.name} worker did not finish within {timeout:.0f} s"),
+                    "",
+                )
+        self.final_seen.set()
+
+    def abort(self) -> None:
+        super().abort()
+        if self._proc is not None:
+            self._proc.terminate()
