@@ -580,6 +580,16 @@ def read_sequence_ground_truth(path: Path) -> PoseSource:
 
 # --------------------------------------------------------------------------------------------
 # writers (atomic: temp file in the same folder, then os.replace)
+#
+# One text format for every trajectory the project writes (``slam run`` outputs included): times
+# as exact decimals of the integer nanoseconds (9 digits after the point for TUM seconds, integer
+# ns for EuRoC csv), every other value as Python's shortest round-trip ``repr`` of the float64, so
+# reading a written file gives back the very same numbers.
+
+TUM_HEADER = "timestamp tx ty tz qx qy qz qw"
+EUROC_HEADER = (
+    "timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []"
+)
 
 
 def _write_atomic(path: Path, text: str) -> None:
@@ -595,24 +605,33 @@ def ns_to_seconds_str(t_ns: int) -> str:
     return f"{sign}{t // 1_000_000_000}.{t % 1_000_000_000:09d}"
 
 
-def write_tum(path: str | Path, traj: Trajectory) -> None:
-    """TUM text: ``t x y z qx qy qz qw``, t in seconds (exact from ns)."""
-    q_xyzw = traj.q_wxyz[:, [1, 2, 3, 0]]  # our w,x,y,z -> TUM x,y,z,w
-    rows = [
-        f"{ns_to_seconds_str(t)} " + " ".join(repr(float(v)) for v in (*p, *q))
-        for t, p, q in zip(traj.t_ns.tolist(), traj.positions_m, q_xyzw)
-    ]
-    _write_atomic(Path(path), "# timestamp tx ty tz qx qy qz qw\n" + "\n".join(rows) + "\n")
+def _text(comment: str, times: list[str], values: np.ndarray, sep: str) -> str:
+    """The comment line, then one line per row: the time, then the values (lossless ``repr``)."""
+    rows = [t + sep + sep.join(map(repr, v)) for t, v in zip(times, values.tolist())]
+    return "\n".join([comment, *rows]) + "\n"
+
+
+def tum_text(traj: Trajectory, header: str = TUM_HEADER) -> str:
+    """TUM text: ``t x y z qx qy qz qw``, t in seconds (exact from ns); ``header`` after a '#'."""
+    values = np.hstack([traj.positions_m, traj.q_wxyz[:, [1, 2, 3, 0]]])  # TUM stores x,y,z,w
+    times = [ns_to_seconds_str(t) for t in traj.t_ns.tolist()]
+    return _text(f"# {header}", times, values, " ")
+
+
+def write_tum(path: str | Path, traj: Trajectory, header: str = TUM_HEADER) -> None:
+    """Write :func:`tum_text` atomically."""
+    _write_atomic(Path(path), tum_text(traj, header))
+
+
+def euroc_csv_text(traj: Trajectory) -> str:
+    """EuRoC csv in the ground-truth column names: ``t_ns,px,py,pz,qw,qx,qy,qz``."""
+    values = np.hstack([traj.positions_m, traj.q_wxyz])
+    return _text(f"#{EUROC_HEADER}", [str(t) for t in traj.t_ns.tolist()], values, ",")
 
 
 def write_euroc_csv(path: str | Path, traj: Trajectory) -> None:
-    """EuRoC estimate layout: ``#timestamp [ns],p_x,p_y,p_z,q_w,q_x,q_y,q_z``."""
-    rows = [
-        f"{t}," + ",".join(repr(float(v)) for v in (*p, *q))
-        for t, p, q in zip(traj.t_ns.tolist(), traj.positions_m, traj.q_wxyz)
-    ]
-    header = "#timestamp [ns],p_x [m],p_y [m],p_z [m],q_w [],q_x [],q_y [],q_z []\n"
-    _write_atomic(Path(path), header + "\n".join(rows) + "\n")
+    """Write :func:`euroc_csv_text` atomically."""
+    _write_atomic(Path(path), euroc_csv_text(traj))
 
 
 def write_kitti(path: str | Path, traj: Trajectory, times_path: str | Path | None = None) -> None:
