@@ -24,6 +24,7 @@ from datasets.sequence import ImuArrays, Sequence
 from datasets.timing import find_gaps, pair_stereo, sort_dedupe
 from slam.calibration import Calibration, CameraCalibration, CameraIntrinsics, ImuCalibration
 from slam.errors import InputError
+from slam.evaluation.io import detect_format, read_trajectory
 from slam.geometry import invert_transform
 from slam.messages import StereoFrame
 from slam.trajectory import Trajectory
@@ -156,48 +157,18 @@ def read_euroc_groundtruth_full(
     )
 
 
-def _seconds_to_ns(text: str) -> int:
-    """'1403715273.262142976' -> 1403715273262142976 exactly (no float rounding)."""
-    neg = text.startswith("-")
-    whole, _, frac = text.lstrip("+-").partition(".")
-    if "e" in text.lower():
-        return round(float(text) * 1e9)
-    ns = int(whole or 0) * 1_000_000_000 + int((frac + "000000000")[:9])
-    return -ns if neg else ns
-
-
 def read_trajectory_file(path: str | os.PathLike[str]) -> Trajectory:
     """A ground-truth file: EuRoC/ASL csv (time ns, p xyz, q wxyz, ...) or TUM text
-    (time s, p xyz, q xyzw, space separated). Rows sorted and de-duplicated by time."""
-    path = os.fspath(path)
-    try:
-        with open(path, encoding="utf-8") as fh:
-            first = next((ln for ln in fh if ln.strip() and not ln.startswith("#")), "")
-    except OSError as exc:
-        raise InputError(f"cannot read {path}: {exc.strerror}") from exc
-    if "," in first:
-        t, rows = read_csv_rows(path)
-        vals = _floats(rows, 7, path)
-        pos, q_wxyz = vals[:, 0:3], vals[:, 3:7]
-    else:
-        times, rows_f = [], []
-        with open(path, encoding="utf-8") as fh:
-            for lineno, line in enumerate(fh, 1):
-                parts = line.split()
-                if not parts or parts[0].startswith("#"):
-                    continue
-                if len(parts) < 8:
-                    raise InputError(
-                        f"{path}:{lineno}: expected 8 columns (TUM: t x y z qx qy qz qw)"
-                    )
-                times.append(_seconds_to_ns(parts[0]))
-                rows_f.append([float(x) for x in parts[1:8]])
-        t = np.asarray(times, dtype=np.int64)
-        vals = np.asarray(rows_f, dtype=float).reshape(-1, 7)
-        pos, q_wxyz = vals[:, 0:3], vals[:, [6, 3, 4, 5]]  # TUM stores x, y, z, w
-    keep = sort_dedupe(t).keep
-    q = q_wxyz[keep] / np.linalg.norm(q_wxyz[keep], axis=1, keepdims=True)
-    return Trajectory(t[keep], np.ascontiguousarray(pos[keep]), q)
+    (time s, p xyz, q xyzw, space separated), read by :mod:`slam.evaluation.io` (the project's
+    one reader of both formats). Rows sorted by time; of repeated times the first row is kept;
+    near-unit quaternions normalised without a warning."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"trajectory file not found: {p}")
+    fmt = detect_format(p)
+    if fmt not in ("tum", "euroc"):
+        raise InputError(f"{p}: not a trajectory file (TUM text or EuRoC csv)")
+    return read_trajectory(p, fmt, duplicates="first", sort=True, quiet=True).trajectory
 
 
 class EurocSequence(Sequence):

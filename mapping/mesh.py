@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from skimage.measure import marching_cubes
 
-from mapping.ply import write_ply_mesh, write_ply_points
+from datasets.ply import write_ply_mesh, write_ply_points
 from mapping.tsdf import TsdfVolume, pack_block_keys
 
 __all__ = [

@@ -99,7 +99,7 @@ def test_help_teaches():
 
 
 def test_run_with_mesh_writes_a_ply(seq_path, tmp_path):
-    from mapping.ply import read_ply
+    from datasets.ply import read_ply
 
     out = tmp_path / "run"
     argv = [

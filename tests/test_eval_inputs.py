@@ -76,6 +76,30 @@ def test_dedupe_keeps_first_or_last(tmp_path: Path) -> None:
     assert evio.read_trajectory(p, duplicates="last").trajectory.positions_m[0, 0] == 5.0
 
 
+def test_sort_puts_rows_in_time_order_and_quiet_only_keeps_the_warnings(
+    tmp_path: Path, caplog
+) -> None:
+    """The datasets' reading of ground truth: sorted, first of repeated times, nothing logged."""
+    from datasets.euroc import read_trajectory_file
+
+    text = "2.0 1 0 0 0 0 0 1\n1.0 0 0 0 0 0 0 1.0005\n2.0 5 0 0 0 0 0 1\n3.0 2 0 0 0 0 0 1\n"
+    p = _write(tmp_path, "u.txt", text)
+    with pytest.raises(InputError, match="backwards"):
+        evio.read_trajectory(p)
+    src = evio.read_trajectory(p, duplicates="first", sort=True, quiet=True)
+    np.testing.assert_array_equal(
+        src.trajectory.t_ns, [1_000_000_000, 2_000_000_000, 3_000_000_000]
+    )
+    np.testing.assert_array_equal(src.trajectory.positions_m[:, 0], [0.0, 1.0, 2.0])
+    assert len(src.warnings) == 3 and "u.txt:3" in src.warnings[1]  # sorted, dropped, normalised
+    assert caplog.text == ""
+    traj = read_trajectory_file(p)
+    np.testing.assert_array_equal(traj.positions_m, src.trajectory.positions_m)
+    assert caplog.text == ""
+    evio.read_trajectory(p, duplicates="first", sort=True)
+    assert "sorted the poses by time (1 went back in time)" in caplog.text
+
+
 def test_non_overlapping_ranges_and_ns_hint(tmp_path: Path) -> None:
     ref = evio.read_trajectory(_write(tmp_path, "ref.txt", GOOD))
     est = evio.read_trajectory(

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from conftest import require
 
-from mapping.ply import read_ply
+from datasets.ply import read_ply
 from tools.cli import main
 
 

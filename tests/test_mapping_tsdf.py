@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from conftest import require
 
+from datasets.ply import read_ply, write_ply_mesh, write_ply_points
 from mapping.mesh import extract_mesh
-from mapping.ply import read_ply, write_ply_mesh, write_ply_points
 from mapping.render import look_at
 from mapping.tsdf import TsdfConfig, TsdfVolume, pack_block_keys, unpack_block_keys
 

@@ -7,8 +7,8 @@ import cv2
 import numpy as np
 
 from datasets.open import open_sequence
+from datasets.ply import read_ply
 from datasets.synth import make_synthetic_sequence
-from datasets.synth.export import read_ply_mesh
 from tools.cli import main
 
 
@@ -31,7 +31,8 @@ def test_synth_cli_writes_mcap_depth_and_mesh(tmp_path) -> None:
         assert a.t_ns == b.t_ns
         assert np.array_equal(a.left, b.left) and np.array_equal(a.right, b.right)
     assert back.ground_truth is not None and len(back.ground_truth) == len(ref.ground_truth)
-    verts, tris = read_ply_mesh(tmp_path / "scene.ply")
+    ply = read_ply(tmp_path / "scene.ply")
+    verts, tris = ply.points, ply.faces
     v_ref, t_ref = ref.scene_mesh()
     assert np.allclose(verts, v_ref, atol=1e-5) and np.array_equal(tris, t_ref)
     t7 = int(ref.frame_times_ns()[7])

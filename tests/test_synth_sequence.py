@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 from conftest import require
 
+from datasets.euroc import read_trajectory_file
 from datasets.synth import make_synthetic_sequence
 from datasets.synth.generator import euroc_like_calibration
-from datasets.synth.trajectories import PROFILES, make_profile, read_trajectory_file
+from datasets.synth.trajectories import PROFILES, make_profile
 from slam.errors import InputError
 from slam.geometry import matrix_to_quat_wxyz
 from slam.messages import ImuSample, StereoFrame
@@ -134,8 +135,7 @@ def test_trajectory_from_tum_file_reproduces_the_motion(tmp_path) -> None:
         for t, p, qq in zip(gt.t_ns, gt.positions_m, q)
     ]
     path.write_text("# t x y z qx qy qz qw\n" + "\n".join(rows) + "\n")
-    t_ns, pos, _ = read_trajectory_file(path)
-    assert len(t_ns) == len(gt)
+    assert len(read_trajectory_file(path)) == len(gt)
     s = make_synthetic_sequence(trajectory_file=str(path), imu_noise=False)
     assert s.num_frames == 240 or s.num_frames == 241
     mid = slice(200, 2000)
@@ -151,7 +151,7 @@ def test_euroc_ground_truth_with_real_imu(shared_data) -> None:
     gt_csv = require(root / "groundtruth_openvins" / "V1_01_easy.csv")
     imu_csv = require(root / "mav0" / "imu0" / "data.csv")
     s = make_synthetic_sequence(trajectory_file=str(gt_csv), imu_csv=str(imu_csv), duration_s=5.0)
-    t_gt, _, _ = read_trajectory_file(gt_csv)
+    t_gt = read_trajectory_file(gt_csv).t_ns
     assert s.frame_times_ns()[0] == t_gt[0]
     assert 990 <= s.num_imu <= 1002  # real 200 Hz IMU over 5 s
     assert s.imu().accel_m_s2[:, 0].mean() > 8.0  # the real sensor's gravity axis

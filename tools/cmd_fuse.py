@@ -96,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
     print(result.summary())
     print(f"wrote {args.out}")
     if args.points is not None:
-        from mapping.ply import write_ply_points
+        from datasets.ply import write_ply_points
 
         pts, cols = result.mapper.volume.surface_points()
         write_ply_points(args.points, pts, cols)

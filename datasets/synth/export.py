@@ -15,43 +15,11 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from datasets.ply import write_ply_mesh
 from datasets.synth.generator import SyntheticSequence
 from slam.atomic import write_atomic
 
 DEPTH_SCALE_M = 0.001  # one unit of the 16-bit depth PNGs, metres (TUM/7-Scenes convention)
-
-
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    write_atomic(path, data)
-
-
-def write_ply_mesh(path: str | os.PathLike[str], vertices: np.ndarray, faces: np.ndarray) -> None:
-    """A binary little-endian PLY with float32 x,y,z vertices and int32 triangles."""
-    v = np.ascontiguousarray(vertices, dtype="<f4")
-    f = np.asarray(faces, dtype="<i4")
-    header = (
-        "ply\nformat binary_little_endian 1.0\ncomment pyvislam synthetic scene (world frame)\n"
-        f"element vertex {len(v)}\nproperty float x\nproperty float y\nproperty float z\n"
-        f"element face {len(f)}\nproperty list uchar int vertex_indices\nend_header\n"
-    ).encode("ascii")
-    tri = np.zeros(len(f), dtype=[("n", "u1"), ("idx", "<i4", (3,))])
-    tri["n"] = 3
-    tri["idx"] = f
-    _atomic_write_bytes(Path(path), header + v.tobytes() + tri.tobytes())
-
-
-def read_ply_mesh(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
-    """Read back a PLY written by :func:`write_ply_mesh` (vertices (V, 3), triangles (T, 3))."""
-    data = Path(path).read_bytes()
-    end = data.index(b"end_header\n") + len(b"end_header\n")
-    header = data[:end].decode("ascii").splitlines()
-    n_v = int(next(ln for ln in header if ln.startswith("element vertex")).split()[-1])
-    n_f = int(next(ln for ln in header if ln.startswith("element face")).split()[-1])
-    v = np.frombuffer(data, dtype="<f4", count=3 * n_v, offset=end).reshape(n_v, 3)
-    tri = np.frombuffer(
-        data, dtype=[("n", "u1"), ("idx", "<i4", (3,))], count=n_f, offset=end + 12 * n_v
-    )
-    return v.astype(np.float64), tri["idx"].astype(np.int64)
 
 
 def write_depth_images(
@@ -67,7 +35,7 @@ def write_depth_images(
         "camera": camera.to_dict(),
         "note": "z in the camera frame, distorted pixel grid of the camera; 0 = no depth",
     }
-    _atomic_write_bytes(out / "depth.json", json.dumps(meta, indent=2).encode())
+    write_atomic(out / "depth.json", json.dumps(meta, indent=2).encode())
     times = seq.frame_times_ns()
     for i in tqdm(range(len(times)), desc=f"depth {out.name}", unit="frame", disable=not progress):
         depth_m = seq.depth(i, cam)
@@ -75,7 +43,7 @@ def write_depth_images(
         ok, buf = cv2.imencode(".png", mm)
         if not ok:
             raise OSError(f"cannot encode depth image {i}")
-        _atomic_write_bytes(out / f"{int(times[i])}.png", buf.tobytes())
+        write_atomic(out / f"{int(times[i])}.png", buf.tobytes())
     return len(times)
 
 
@@ -136,7 +104,7 @@ def run_synth(
     n_depth = write_depth_images(seq, depth_dir, progress=progress) if depth_dir else 0
     if mesh_path is not None:
         verts, tris = seq.scene_mesh()
-        write_ply_mesh(mesh_path, verts, tris)
+        write_ply_mesh(mesh_path, verts, tris, comment="pyvislam synthetic scene (world frame)")
     gt = seq.ground_truth
     assert gt is not None
     return SynthResult(

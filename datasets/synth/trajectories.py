@@ -23,6 +23,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, RotationSpline
 
+from datasets.euroc import read_trajectory_file
 from slam.errors import InputError
 
 # columns: body x (up), body y (right), body z (forward) in the nominal frame (x fwd, y left, z up)
@@ -304,45 +305,14 @@ class SplineMotion(Motion):
         )
 
 
-def read_trajectory_file(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Read a TUM (``t x y z qx qy qz qw``, seconds, spaces) or EuRoC ground-truth csv
-    (``t_ns, px, py, pz, qw, qx, qy, qz, ...``) file -> (t_ns, positions_m, q_wxyz)."""
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(f"trajectory file not found: {p}")
-    text = p.read_text()
-    rows = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
-    if not rows:
-        raise InputError(f"{p}: no trajectory rows (expected TUM or EuRoC csv)")
-    is_csv = "," in rows[0]
-    try:
-        data = np.array([[float(v) for v in (r.split(",") if is_csv else r.split())] for r in rows])
-    except ValueError as exc:
-        raise InputError(f"{p}: cannot parse a number ({exc}); expected TUM or EuRoC csv") from exc
-    if data.ndim != 2 or data.shape[1] < 8:
-        raise InputError(f"{p}: expected at least 8 columns, got {data.shape[-1]}")
-    if is_csv:  # EuRoC: ns, p, q_wxyz
-        t_ns = np.array([int(r.split(",")[0]) for r in rows], dtype=np.int64)
-        pos = data[:, 1:4]
-        q_wxyz = data[:, 4:8]
-    else:  # TUM: seconds, p, q_xyzw
-        t_ns = np.round(data[:, 0] * 1e9).astype(np.int64)
-        pos = data[:, 1:4]
-        q_wxyz = data[:, [7, 4, 5, 6]]  # TUM stores qx qy qz qw
-    order = np.argsort(t_ns, kind="stable")
-    t_ns, pos, q_wxyz = t_ns[order], pos[order], q_wxyz[order]
-    keep = np.concatenate([[True], np.diff(t_ns) > 0])
-    if keep.sum() < 4:
-        raise InputError(f"{p}: need at least 4 poses with distinct times")
-    q = q_wxyz[keep]
-    return t_ns[keep], pos[keep], q / np.linalg.norm(q, axis=1, keepdims=True)
-
-
 def motion_from_file(path: str | Path) -> SplineMotion:
     """A spline motion through the poses of a TUM or EuRoC ground-truth file.
 
     Times are relative to the file's first pose (``t0_ns`` keeps the offset)."""
-    t_ns, pos, q_wxyz = read_trajectory_file(path)
+    traj = read_trajectory_file(path)
+    if len(traj) < 4:
+        raise InputError(f"{path}: need at least 4 poses with distinct times")
+    t_ns, pos, q_wxyz = traj.t_ns, traj.positions_m, traj.q_wxyz
     t_rel_s = (t_ns - t_ns[0]).astype(np.float64) * 1e-9
     return SplineMotion(
         t0_ns=int(t_ns[0]), t_rel_s=t_rel_s, positions_m=pos, q_wxyz=q_wxyz, name=Path(path).stem

@@ -138,30 +138,36 @@ def read_trajectory(
     times_path: str | Path | None = None,
     role: str = "trajectory",
     duplicates: str = "error",
+    sort: bool = False,
+    quiet: bool = False,
 ) -> PoseSource:
     """Read a trajectory in any supported format (``fmt`` None: detect it).
 
     ``topic`` selects a bag topic; ``times_path`` gives KITTI poses their times; ``role``
     ("reference"/"estimate") only shapes messages and the automatic topic choice;
-    ``duplicates`` ("error", "first", "last") says what to do with repeated timestamps.
+    ``duplicates`` ("error", "first", "last") says what to do with repeated timestamps;
+    ``sort`` (TUM, EuRoC csv, run, bag) puts rows that go back in time in order (stable, with a
+    warning) instead of refusing them. What was repaired (rows sorted, duplicates dropped,
+    quaternions normalised) is logged as warnings and kept in ``PoseSource.warnings``; ``quiet``
+    only keeps it (datasets read their ground truth so: sorted, first of duplicates, quiet).
     """
     p = Path(path)
     if not p.exists():
         raise InputError(f"{p}: no such file or folder")
     fmt = fmt or detect_format(p)
     if fmt == "tum":
-        return read_tum(p, duplicates)
+        return read_tum(p, duplicates, sort=sort, quiet=quiet)
     if fmt == "euroc":
-        return read_euroc_csv(p, duplicates)
+        return read_euroc_csv(p, duplicates, sort=sort, quiet=quiet)
     if fmt == "kitti":
         return read_kitti(p, times_path)
     if fmt == "run":
         if p.is_dir():
-            src = read_tum(p / "trajectory.tum", duplicates)
+            src = read_tum(p / "trajectory.tum", duplicates, sort=sort, quiet=quiet)
             return _renamed(src, p.name or str(p), str(p), "run")
-        return read_tum(p, duplicates)
+        return read_tum(p, duplicates, sort=sort, quiet=quiet)
     if fmt == "bag":
-        return read_bag(p, topic, role=role, duplicates=duplicates)
+        return read_bag(p, topic, role=role, duplicates=duplicates, sort=sort, quiet=quiet)
     if fmt == "sequence":
         return read_sequence_ground_truth(p)
     raise InputError(f"{p}: unknown format {fmt!r}; choose one of {', '.join(FORMATS)}")
@@ -296,12 +302,16 @@ def _check_finite(path: Path, values: np.ndarray, numbers: list[int]) -> None:
 
 
 def _check_times(
-    path: Path, t_ns: np.ndarray, numbers: list[int], duplicates: str = "error"
+    path: Path,
+    t_ns: np.ndarray,
+    numbers: list[int],
+    duplicates: str = "error",
+    warnings: list[str] | None = None,
 ) -> np.ndarray:
     """Indices of the rows to keep: refuse backwards time; duplicates per ``duplicates``.
 
     ``duplicates``: "error" (refuse), "first" or "last" (keep that row of each run of equal
-    timestamps, with a warning).
+    timestamps, with a warning appended to ``warnings``).
     """
     dt = np.diff(t_ns)
     keep = np.arange(len(t_ns))
@@ -324,20 +334,18 @@ def _check_times(
     drop = (
         np.concatenate([dup, [False]]) if duplicates == "last" else np.concatenate([[False], dup])
     )
-    log.warning(
-        "%s:%d: dropped %d pose(s) with duplicate timestamps (kept the %s of each)",
-        path,
-        numbers[i + 1],
-        int(dup.sum()),
-        duplicates,
-    )
+    if warnings is not None:
+        warnings.append(
+            f"{path}:{numbers[i + 1]}: dropped {int(dup.sum())} pose(s) with duplicate "
+            f"timestamps (kept the {duplicates} of each)"
+        )
     return keep[~drop]
 
 
 def _checked_quaternions(
     path: Path, q_wxyz: np.ndarray, numbers: list[int], warnings: list[str]
 ) -> np.ndarray:
-    """Refuse quaternions far from unit norm; normalise close ones with a warning."""
+    """Refuse quaternions far from unit norm; normalise close ones (appended to ``warnings``)."""
     norms = np.linalg.norm(q_wxyz, axis=1)
     off = np.abs(norms - 1.0)
     bad = off > QUAT_NORM_REFUSE
@@ -350,12 +358,10 @@ def _checked_quaternions(
     warn = off > QUAT_NORM_WARN
     if warn.any():
         i = int(np.argmax(warn))
-        msg = (
+        warnings.append(
             f"{path}:{numbers[i]}: normalised {int(warn.sum())} non-unit quaternion(s) "
             f"(largest |norm-1| = {off.max():.2g})"
         )
-        log.warning(msg)
-        warnings.append(msg)
     return q_wxyz / norms[:, None]
 
 
@@ -368,15 +374,27 @@ def _from_pq(
     numbers: list[int],
     duplicates: str = "error",
     stamps_s: np.ndarray | None = None,
+    sort: bool = False,
+    quiet: bool = False,
 ) -> PoseSource:
     warnings: list[str] = []
-    keep = _check_times(path, t_ns, numbers, duplicates)
+    if sort:
+        order = np.argsort(t_ns, kind="stable")
+        back = int(np.count_nonzero(np.diff(t_ns) < 0))
+        if back:
+            warnings.append(f"{path}: sorted the poses by time ({back} went back in time)")
+            t_ns, positions_m, q_wxyz_raw = t_ns[order], positions_m[order], q_wxyz_raw[order]
+            stamps_s = stamps_s[order] if stamps_s is not None else None
+            numbers = [numbers[i] for i in order]
+    keep = _check_times(path, t_ns, numbers, duplicates, warnings)
     if len(keep) != len(t_ns):
-        warnings.append(f"{path}: dropped {len(t_ns) - len(keep)} duplicate-timestamp pose(s)")
         t_ns, positions_m, q_wxyz_raw = t_ns[keep], positions_m[keep], q_wxyz_raw[keep]
         stamps_s = stamps_s[keep] if stamps_s is not None else None
         numbers = [numbers[i] for i in keep]
     q_unit = _checked_quaternions(path, q_wxyz_raw, numbers, warnings)
+    if not quiet:
+        for msg in warnings:
+            log.warning(msg)
     positions_m = np.ascontiguousarray(positions_m)
     traj = Trajectory(t_ns=t_ns, positions_m=positions_m, q_wxyz=q_unit)
     # evo builds its matrices from the raw quaternion (rescaled by sqrt(2/n)); do the same
@@ -384,19 +402,24 @@ def _from_pq(
     return PoseSource(traj, poses, str(path), str(path), fmt, True, warnings, stamps_s)
 
 
-def read_tum(path: Path, duplicates: str = "error") -> PoseSource:
+def read_tum(
+    path: Path, duplicates: str = "error", *, sort: bool = False, quiet: bool = False
+) -> PoseSource:
     """TUM: ``t x y z qx qy qz qw`` (seconds; quaternion x,y,z,w)."""
     lines, numbers, _ = _data_lines(path)
     values = _parse_table(path, lines, numbers, None, 8, "TUM")
     _check_finite(path, values, numbers)
     t_ns = _times_ns_from_seconds(path, [ln.split(None, 1)[0] for ln in lines], numbers)
     q_wxyz = values[:, [7, 4, 5, 6]]  # TUM stores x,y,z,w -> w,x,y,z
+    stamps_s = values[:, 0].copy()
     return _from_pq(
-        path, "tum", t_ns, values[:, 1:4], q_wxyz, numbers, duplicates, values[:, 0].copy()
+        path, "tum", t_ns, values[:, 1:4], q_wxyz, numbers, duplicates, stamps_s, sort, quiet
     )
 
 
-def read_euroc_csv(path: Path, duplicates: str = "error") -> PoseSource:
+def read_euroc_csv(
+    path: Path, duplicates: str = "error", *, sort: bool = False, quiet: bool = False
+) -> PoseSource:
     """EuRoC csv: ``t_ns, px, py, pz, qw, qx, qy, qz[, v, bw, ba]`` (header may reorder q)."""
     lines, numbers, comments = _data_lines(path)
     header = comments[-1] if comments else ""
@@ -418,8 +441,9 @@ def read_euroc_csv(path: Path, duplicates: str = "error") -> PoseSource:
     if len(names) >= 8 and ("qw" in names[7] or names[7].endswith("_w") or names[7] == "w"):
         q_cols = [7, 4, 5, 6]  # header says x,y,z,w -> reorder to w,x,y,z
     stamps_s = np.divide(values[:, 0], 1e9)  # evo: float(ns string) / 1e9
+    q_wxyz = values[:, q_cols]
     return _from_pq(
-        path, "euroc", t_ns, values[:, 1:4], values[:, q_cols], numbers, duplicates, stamps_s
+        path, "euroc", t_ns, values[:, 1:4], q_wxyz, numbers, duplicates, stamps_s, sort, quiet
     )
 
 
@@ -500,7 +524,13 @@ def list_pose_topics(path: Path) -> dict[str, str]:
 
 
 def read_bag(
-    path: Path, topic: str | None, *, role: str = "trajectory", duplicates: str = "error"
+    path: Path,
+    topic: str | None,
+    *,
+    role: str = "trajectory",
+    duplicates: str = "error",
+    sort: bool = False,
+    quiet: bool = False,
 ) -> PoseSource:
     """A pose topic of a ROS 1/2 bag or MCAP; header stamps, as evo."""
     topics = list_pose_topics(path)
@@ -550,7 +580,16 @@ def read_bag(
     _check_finite(path, values, numbers)
     t_ns = np.array(t_list, dtype=np.int64)
     src = _from_pq(
-        path, "bag", t_ns, values[:, :3], values[:, 3:], numbers, duplicates, np.array(s_list)
+        path,
+        "bag",
+        t_ns,
+        values[:, :3],
+        values[:, 3:],
+        numbers,
+        duplicates,
+        np.array(s_list),
+        sort,
+        quiet,
     )
     return _renamed(src, f"{path.name}:{topic}", str(path), "bag")
 
@@ -580,6 +619,16 @@ def read_sequence_ground_truth(path: Path) -> PoseSource:
 
 # --------------------------------------------------------------------------------------------
 # writers (atomic: temp file in the same folder, then os.replace)
+#
+# One text format for every trajectory the project writes (``slam run`` outputs included): times
+# as exact decimals of the integer nanoseconds (9 digits after the point for TUM seconds, integer
+# ns for EuRoC csv), every other value as Python's shortest round-trip ``repr`` of the float64, so
+# reading a written file gives back the very same numbers.
+
+TUM_HEADER = "timestamp tx ty tz qx qy qz qw"
+EUROC_HEADER = (
+    "timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []"
+)
 
 
 def _write_atomic(path: Path, text: str) -> None:
@@ -595,24 +644,33 @@ def ns_to_seconds_str(t_ns: int) -> str:
     return f"{sign}{t // 1_000_000_000}.{t % 1_000_000_000:09d}"
 
 
-def write_tum(path: str | Path, traj: Trajectory) -> None:
-    """TUM text: ``t x y z qx qy qz qw``, t in seconds (exact from ns)."""
-    q_xyzw = traj.q_wxyz[:, [1, 2, 3, 0]]  # our w,x,y,z -> TUM x,y,z,w
-    rows = [
-        f"{ns_to_seconds_str(t)} " + " ".join(repr(float(v)) for v in (*p, *q))
-        for t, p, q in zip(traj.t_ns.tolist(), traj.positions_m, q_xyzw)
-    ]
-    _write_atomic(Path(path), "# timestamp tx ty tz qx qy qz qw\n" + "\n".join(rows) + "\n")
+def _text(comment: str, times: list[str], values: np.ndarray, sep: str) -> str:
+    """The comment line, then one line per row: the time, then the values (lossless ``repr``)."""
+    rows = [t + sep + sep.join(map(repr, v)) for t, v in zip(times, values.tolist())]
+    return "\n".join([comment, *rows]) + "\n"
+
+
+def tum_text(traj: Trajectory, header: str = TUM_HEADER) -> str:
+    """TUM text: ``t x y z qx qy qz qw``, t in seconds (exact from ns); ``header`` after a '#'."""
+    values = np.hstack([traj.positions_m, traj.q_wxyz[:, [1, 2, 3, 0]]])  # TUM stores x,y,z,w
+    times = [ns_to_seconds_str(t) for t in traj.t_ns.tolist()]
+    return _text(f"# {header}", times, values, " ")
+
+
+def write_tum(path: str | Path, traj: Trajectory, header: str = TUM_HEADER) -> None:
+    """Write :func:`tum_text` atomically."""
+    _write_atomic(Path(path), tum_text(traj, header))
+
+
+def euroc_csv_text(traj: Trajectory) -> str:
+    """EuRoC csv in the ground-truth column names: ``t_ns,px,py,pz,qw,qx,qy,qz``."""
+    values = np.hstack([traj.positions_m, traj.q_wxyz])
+    return _text(f"#{EUROC_HEADER}", [str(t) for t in traj.t_ns.tolist()], values, ",")
 
 
 def write_euroc_csv(path: str | Path, traj: Trajectory) -> None:
-    """EuRoC estimate layout: ``#timestamp [ns],p_x,p_y,p_z,q_w,q_x,q_y,q_z``."""
-    rows = [
-        f"{t}," + ",".join(repr(float(v)) for v in (*p, *q))
-        for t, p, q in zip(traj.t_ns.tolist(), traj.positions_m, traj.q_wxyz)
-    ]
-    header = "#timestamp [ns],p_x [m],p_y [m],p_z [m],q_w [],q_x [],q_y [],q_z []\n"
-    _write_atomic(Path(path), header + "\n".join(rows) + "\n")
+    """Write :func:`euroc_csv_text` atomically."""
+    _write_atomic(Path(path), euroc_csv_text(traj))
 
 
 def write_kitti(path: str | Path, traj: Trajectory, times_path: str | Path | None = None) -> None:

@@ -81,7 +81,7 @@ def _finish(mapper: Any, request: MapFinish) -> tuple[MapperSummary, MeshSnapsho
     if final is not None:
         summary.vertices, summary.faces = len(final.vertices_m), len(final.faces)
         if request.mesh_path:
-            from mapping.ply import write_ply_mesh
+            from datasets.ply import write_ply_mesh
 
             write_ply_mesh(
                 request.mesh_path, final.vertices_m, final.faces, final.normals, final.colors_rgb

@@ -1,4 +1,5 @@
-"""Binary PLY (little endian) export and import of meshes and point clouds.
+"""Binary PLY (little endian) export and import of meshes and point clouds: the project's one
+PLY module (the dense mapper's meshes, ``slam fuse`` point clouds, ``slam synth``'s scene mesh).
 
 The writer emits what MeshLab, Open3D and Blender read: ``vertex`` with float x/y/z, optional
 float nx/ny/nz and uchar red/green/blue, and ``face`` as ``list uchar int vertex_indices``.
@@ -9,6 +10,7 @@ face list; it exists for tests and round trips, not as a general PLY library.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -77,7 +79,7 @@ def _vertex_record(
     return rec, header
 
 
-def _write_atomic(path: str | Path, header: str, chunks: list[bytes]) -> Path:
+def _write_atomic(path: str | os.PathLike[str], header: str, chunks: list[bytes]) -> Path:
     path = Path(path)
     with atomic_output(path) as fh:
         fh.write(header.encode("ascii"))
@@ -87,7 +89,7 @@ def _write_atomic(path: str | Path, header: str, chunks: list[bytes]) -> Path:
 
 
 def write_ply_points(
-    path: str | Path,
+    path: str | os.PathLike[str],
     points: np.ndarray,
     colors_rgb: np.ndarray | None = None,
     normals: np.ndarray | None = None,
@@ -104,13 +106,19 @@ def write_ply_points(
 
 
 def write_ply_mesh(
-    path: str | Path,
+    path: str | os.PathLike[str],
     vertices: np.ndarray,
     faces: np.ndarray,
     normals: np.ndarray | None = None,
     colors_rgb: np.ndarray | None = None,
+    *,
+    comment: str = "pyvislam TSDF mesh",
 ) -> Path:
-    """Write a binary PLY triangle mesh: vertices (N, 3), faces (M, 3) int, normals, colours."""
+    """Write a binary PLY triangle mesh: vertices (N, 3), faces (M, 3) int, normals, colours.
+
+    ``comment`` goes into the header (one line of text)."""
+    if "\n" in comment or "\r" in comment:
+        raise ValueError("a PLY comment is one line")
     rec, props = _vertex_record(vertices, normals, colors_rgb)
     tri = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     if len(tri) and (tri.min() < 0 or tri.max() >= len(rec)):
@@ -119,7 +127,7 @@ def write_ply_mesh(
     face_rec["n"] = 3
     face_rec["v"] = tri.astype(np.int32)
     header = "\n".join(
-        ["ply", "format binary_little_endian 1.0", "comment pyvislam TSDF mesh"]
+        ["ply", "format binary_little_endian 1.0", f"comment {comment}"]
         + [f"element vertex {len(rec)}"]
         + props
         + [f"element face {len(tri)}", "property list uchar int vertex_indices", "end_header", ""]
@@ -127,7 +135,7 @@ def write_ply_mesh(
     return _write_atomic(path, header, [rec.tobytes(), face_rec.tobytes()])
 
 
-def read_ply(path: str | Path) -> PlyData:
+def read_ply(path: str | os.PathLike[str]) -> PlyData:
     """Read a PLY written by this module (or any binary-LE/ASCII PLY of the same shape)."""
     path = Path(path)
     raw = path.read_bytes()
