@@ -25,37 +25,13 @@ from typing import Any
 import cv2
 import numpy as np
 
+from mapping.config import MapperStageConfig
 from slam.calibration import Calibration
 from slam.messages import EndOfStream, Keyframe, MapperReport, MeshSnapshot
 from slam.stage import Stage, StageError, latency_summary
 from slam.worker import READY, WorkerProcess, receive
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class MapperStageConfig:
-    """The live mapper (``mapping`` in the run config)."""
-
-    enabled: bool = False
-    """Dense mapping during `slam run` (also `slam run --mesh`)."""
-    voxel_m: float = 0.02
-    """TSDF voxel size, metres."""
-    max_depth_m: float = 4.0
-    """Depths beyond this are not fused."""
-    depth_scale: float = 0.5
-    """Plane sweep at this fraction of the image size (0.5 is ~4x cheaper than full size)."""
-    num_planes: int = 96
-    """Plane-sweep depth hypotheses (inverse-depth sampled)."""
-    sweep_threads: int = 2
-    """Plane-sweep threads in the worker (a background process: SCHED_IDLE, see
-    ``player.idle_workers``, so it yields to tracking)."""
-    max_backlog: int = 4
-    """Keyframes waiting for the mapper; beyond that a keyframe is dropped (and counted)."""
-    mesh_every_s: float = 5.0
-    """Send a mesh snapshot to the viewer at most this often (marching cubes is not free)."""
-    final_reintegration: bool = True
-    """At the end, re-integrate keyframes whose final (optimised, loop-closed) pose moved."""
 
 
 @dataclass(frozen=True, eq=False)

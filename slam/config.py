@@ -14,7 +14,7 @@ from typing import Any
 
 import yaml
 
-from mapping.stage import MapperStageConfig
+from mapping.config import MapperStageConfig
 from slam.backend.config import BackendConfig
 from slam.errors import SlamError
 from slam.loop.config import LoopClosureConfig

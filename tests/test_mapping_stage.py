@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from synthetic_planes import PlaneScene, orbit_poses
 
-from mapping.stage import MapperStage, MapperStageConfig
+from mapping.config import MapperStageConfig
+from mapping.stage import MapperStage
 from slam.calibration import Calibration, CameraCalibration, CameraIntrinsics, ImuCalibration
 from slam.messages import Keyframe
 
