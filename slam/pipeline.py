@@ -31,7 +31,7 @@ from datasets.prefetch import prefetched_messages
 from datasets.sequence import Sequence
 from mapping.stage import MapperStage
 from slam.backend_stage import BackendStage
-from slam.config import SlamConfig, config_to_yaml
+from slam.config import SlamConfig, config_to_yaml, validate_config
 from slam.frontend.tracker import FrontEnd
 from slam.imu_buffer import ImuBuffer
 from slam.loop.stage import LoopClosureStage
@@ -186,6 +186,7 @@ def run_slam(
     """Play ``seq`` through the pipeline and write the run's outputs to ``out_dir``."""
     from slam.viz import RerunStage, open_recording
 
+    validate_config(cfg)  # again: callers (`slam run --max-frames`) may have changed it
     sequential = cfg.player.sequential
     threaded = not sequential
     imu_buffer = ImuBuffer() if cfg.use_imu and seq.num_imu else None
