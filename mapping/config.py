@@ -1,6 +1,6 @@
 """Configuration of the live dense mapper (``mapping`` in the run config).
 
-Config only: ``slam.config`` nests it without importing the mapper stage (``mapping.stage``)
+Config only: ``slam.config`` nests it without importing the mapper stage
 or anything heavy.
 """
 
@@ -19,7 +19,7 @@ class MapperStageConfig:
     """Dense mapping during `slam run` (also `slam run --mesh`)."""
     voxel_m: float = bounded(0.02, gt=0)
     """TSDF voxel size, metres."""
-    # bounds: above the plane sweep's nearest plane (0.4 m, mapping.stage._make_mapper)
+    # bounds: above the plane sweep's nearest plane (0.4 m, the mapper stage's _make_mapper)
     max_depth_m: float = bounded(4.0, gt=0.4)
     """Depths beyond this are not fused."""
     depth_scale: float = bounded(0.5, gt=0, le=1)
