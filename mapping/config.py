@@ -1,8 +1,14 @@
-"""The live mapper's configuration (``mapping`` in the run config)."""
+"""Configuration of the live dense mapper (``mapping`` in the run config).
+
+Config only: ``slam.config`` nests it without importing the mapper stage
+or anything heavy.
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+from slam.bounds import bounded
 
 
 @dataclass(frozen=True)
@@ -11,20 +17,21 @@ class MapperStageConfig:
 
     enabled: bool = False
     """Dense mapping during `slam run` (also `slam run --mesh`)."""
-    voxel_m: float = 0.02
+    voxel_m: float = bounded(0.02, gt=0)
     """TSDF voxel size, metres."""
-    max_depth_m: float = 4.0
+    # bounds: above the plane sweep's nearest plane (0.4 m, the mapper stage's _make_mapper)
+    max_depth_m: float = bounded(4.0, gt=0.4)
     """Depths beyond this are not fused."""
-    depth_scale: float = 0.5
+    depth_scale: float = bounded(0.5, gt=0, le=1)
     """Plane sweep at this fraction of the image size (0.5 is ~4x cheaper than full size)."""
-    num_planes: int = 96
+    num_planes: int = bounded(96, ge=2)
     """Plane-sweep depth hypotheses (inverse-depth sampled)."""
-    sweep_threads: int = 2
+    sweep_threads: int = bounded(2, ge=1)
     """Plane-sweep threads in the worker (a background process: SCHED_IDLE, see
     ``player.idle_workers``, so it yields to tracking)."""
-    max_backlog: int = 4
+    max_backlog: int = bounded(4, ge=1)
     """Keyframes waiting for the mapper; beyond that a keyframe is dropped (and counted)."""
-    mesh_every_s: float = 5.0
+    mesh_every_s: float = bounded(5.0, ge=0)
     """Send a mesh snapshot to the viewer at most this often (marching cubes is not free)."""
     final_reintegration: bool = True
     """At the end, re-integrate keyframes whose final (optimised, loop-closed) pose moved."""

@@ -2,12 +2,18 @@
 
 Loaded from a named preset or a YAML file (partial files override the preset they name with
 ``preset:``, default ``stereo-vo``/``euroc-stereo-imu``); the resolved config is saved with every
-run. Unknown keys are an error, so a typo never silently falls back to a default.
+run. Unknown keys are an error, so a typo never silently falls back to a default. Every numeric
+field has an allowed range (:func:`slam.bounds.bounded`), checked by :func:`validate_config` on
+every loaded config before a run. This module imports config modules only, never a stage.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
+import numbers
+import types
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -16,23 +22,28 @@ import yaml
 
 from mapping.config import MapperStageConfig
 from slam.backend.config import BackendConfig
+from slam.bounds import bounded, field_bounds
 from slam.errors import SlamError
 from slam.loop.config import LoopClosureConfig
+
+_SUBPIXEL_OFF = "switch refinement off with frontend.corner_subpixel: false"
+_AFFINE_OFF = "switch refinement off with frontend.affine_refinement: false"
 
 
 @dataclass
 class FrontendConfig:
     """Visual front end: features, KLT, stereo, PnP and keyframe decisions."""
 
-    max_features: int = 220
+    max_features: int = bounded(220, ge=1, le=5000)
     """Target number of tracked features (grid-bucketed)."""
-    grid_cols: int = 8
+    grid_cols: int = bounded(8, ge=1)
     """Detection grid columns (one bucket gets at most max_features / cells new features)."""
-    grid_rows: int = 6
+    grid_rows: int = bounded(6, ge=1)
     """Detection grid rows."""
-    min_feature_distance_px: int = 12
+    min_feature_distance_px: int = bounded(12, ge=1)
     """Minimum distance between features, pixels."""
-    corner_quality: float = 0.01
+    # bounds: OpenCV needs qualityLevel > 0; at 1 only the strongest corner qualifies
+    corner_quality: float = bounded(0.01, gt=0, lt=1)
     """goodFeaturesToTrack quality level."""
     corner_subpixel: bool = True
     """Refine new corners to sub-pixel at full resolution (``cv2.cornerSubPix``). Detection
@@ -40,7 +51,8 @@ class FrontendConfig:
     again gets a corner up to a pixel away from the first visit's, and the landmarks loop
     closure fuses across visits disagreed by 0.5 px RMS (measured on room-figure8 with
     ground-truth poses, against 0.15 px within visits)."""
-    corner_subpixel_half_window_px: int = 7
+    # bounds: cornerSubPix needs an image at least 2n+5 pixels high
+    corner_subpixel_half_window_px: int = bounded(7, ge=1, le=20, hint=_SUBPIXEL_OFF)
     """cornerSubPix half window (a (2n+1)^2 window). Sequential loop-closed ATE with 3 / 7:
     figure8 3.5 / 3.0 mm, loop 1.6 / 1.8, aggressive 2.9 / 2.9, hall 9.8 / 7.5 (online ATE
     moved both ways: 6.1 / 6.4, 10.1 / 9.6, 15.4 / 13.1, 26.7 / 39.3, within its run-to-run
@@ -51,87 +63,74 @@ class FrontendConfig:
     continue from the re-fitted pixel. Translation-only KLT drifts as its window deforms: on the synthetic room (ground-truth depth and poses,
     ``python -m tools.bench_klt_drift``) the median error after 4 s is 0.63 px with a 21-px
     window, 0.063 px with the re-fit."""
-    affine_half_window_px: int = 7
+    affine_half_window_px: int = bounded(7, ge=2, hint=_AFFINE_OFF)
     """Half side of the affine template (a (2n+1)^2 patch)."""
-    affine_iterations: int = 3
+    affine_iterations: int = bounded(3, ge=1, hint=_AFFINE_OFF)
     """Inverse-compositional iterations per fit. Started from the last fit (a few frames
     old), 3 gave the same tracks as 6 (median error after 4 s 0.098 / 0.099 px, measured with
     bilinear sampling)."""
-    affine_period_frames: int = 4
+    affine_period_frames: int = bounded(4, ge=1, hint=_AFFINE_OFF)
     """Each track is re-fitted every this many frames (a quarter of the tracks per frame: ~1
     ms, instead of ~4 ms for all of them on the keyframe's frame, the front end's slowest)."""
-    klt_window_px: int = 21
+    # bounds: calcOpticalFlowPyrLK asserts winSize > 2
+    klt_window_px: int = bounded(21, ge=3)
     """KLT window side, pixels (17 was ~20% cheaper but lost track on the aggressive profile)."""
-    klt_pyramid_levels: int = 3
+    klt_pyramid_levels: int = bounded(3, ge=0)
     """KLT pyramid levels above the base image."""
-    klt_fb_max_error_px: float = 0.7
+    klt_fb_max_error_px: float = bounded(0.7, gt=0)
     """Forward-backward check: max distance between a point and its back-tracked position."""
-    stereo_max_epipolar_px: float = 1.5
+    stereo_max_epipolar_px: float = bounded(1.5, gt=0)
     """Max distance from the epipolar line for a left-right match, pixels."""
-    stereo_known_point_levels: int = 0
+    stereo_known_point_levels: int = bounded(0, ge=0)
     """KLT pyramid levels above the base image when stereo-matching a tracked landmark (its
     projection into the right image is the start)."""
-    stereo_known_max_shift_px: float = 3.0
+    stereo_known_max_shift_px: float = bounded(3.0, gt=0)
     """A tracked landmark's right-image match must lie this close to its projection."""
-    min_depth_m: float = 0.2
+    min_depth_m: float = bounded(0.2, gt=0, lt_field="max_depth_m")
     """Closest accepted stereo depth, metres."""
-    max_depth_m: float = 25.0
+    max_depth_m: float = bounded(25.0, gt=0)
     """Farthest accepted stereo depth, metres."""
-    pnp_reprojection_px: float = 2.0
+    pnp_reprojection_px: float = bounded(2.0, gt=0)
     """RANSAC inlier threshold for PnP, pixels."""
-    min_pnp_inliers: int = 15
+    # bounds: solvePnPRansac asserts >= 4 points; more than max_features never track
+    min_pnp_inliers: int = bounded(15, ge=4, le_field="max_features")
     """Fewer inliers than this is a tracking loss."""
-    keyframe_min_tracked_ratio: float = 0.7
+    keyframe_min_tracked_ratio: float = bounded(0.7, ge=0, le=1)
     """New keyframe when fewer than this fraction of the last keyframe's landmarks are tracked."""
-    keyframe_min_interval_s: float = 0.15
+    keyframe_min_interval_s: float = bounded(0.15, ge=0, le_field="keyframe_max_interval_s")
     """No new keyframe sooner than this after the last one, unless half its landmarks are gone."""
-    keyframe_max_interval_s: float = 0.5
+    keyframe_max_interval_s: float = bounded(0.5, gt=0)
     """New keyframe at least this often, seconds."""
-    keyframe_min_parallax_px: float = 25.0
+    keyframe_min_parallax_px: float = bounded(25.0, gt=0)
     """New keyframe when the median feature displacement since the last one exceeds this."""
-    black_frame_max_mean: float = 8.0
+    # bounds: 8-bit images: 255 would call every frame black
+    black_frame_max_mean: float = bounded(8.0, ge=0, lt=255)
     """A frame darker than this mean intensity is black (tracking cannot work)."""
-    textureless_max_std: float = 3.0
+    # bounds: the largest std of 8-bit values is 127.5
+    textureless_max_std: float = bounded(3.0, ge=0, lt=127.5)
     """A frame with less intensity spread than this is textureless."""
     use_gyro_prediction: bool = True
     """Predict feature positions by integrating the gyro between frames."""
-
-    def __post_init__(self) -> None:
-        if self.corner_subpixel_half_window_px < 1:
-            raise SlamError(
-                "config key frontend.corner_subpixel_half_window_px must be at least 1, got "
-                f"{self.corner_subpixel_half_window_px!r} (switch refinement off with "
-                "frontend.corner_subpixel: false)"
-            )
-        for key, least in (
-            ("affine_half_window_px", 2),
-            ("affine_iterations", 1),
-            ("affine_period_frames", 1),
-        ):
-            if getattr(self, key) < least:
-                raise SlamError(
-                    f"config key frontend.{key} must be at least {least}, got "
-                    f"{getattr(self, key)!r} (switch refinement off with "
-                    "frontend.affine_refinement: false)"
-                )
 
 
 @dataclass
 class PlayerConfig:
     """How the sequence is played into the pipeline."""
 
-    speed: float = 1.0
+    speed: float = bounded(1.0, ge=0)
     """Playback speed relative to sensor time; 0 means as fast as the pipeline takes it."""
     sequential: bool = False
     """Run every stage in one thread in time order (deterministic)."""
-    frame_queue_size: int = 2
+    # bounds: 0 would make the queue unbounded (frames are never dropped)
+    frame_queue_size: int = bounded(2, ge=1)
     """Frames waiting for the front end; when full in real-time playback, frames are dropped."""
-    max_frames: int = 0
+    max_frames: int = bounded(0, ge=0)
     """Stop after this many frames (0 = all)."""
     reader_process: bool = True
     """Decode the sequence in a reader process (concurrent runs): decoding is partly pure
     Python and would hold the GIL the front end needs. False decodes in the player thread."""
-    gil_switch_interval_ms: float = 1.0
+    # bounds: 0 leaves Python's switch interval alone
+    gil_switch_interval_ms: float = bounded(1.0, ge=0)
     """Python's GIL switch interval during a concurrent run (Python's default is 5 ms). Every
     OpenCV call the front end makes releases the GIL; getting it back from a thread running
     Python (the player decoding, a queue feeder pickling) can take up to this long, several
@@ -149,9 +148,9 @@ class VizConfig:
 
     log_images: bool = True
     """Log the camera image (JPEG-compressed) with the frustum."""
-    jpeg_quality: int = 75
+    jpeg_quality: int = bounded(75, ge=0, le=100)
     """JPEG quality for logged images."""
-    image_every_n_frames: int = 1
+    image_every_n_frames: int = bounded(1, ge=1)
     """Log every n-th image only (the rest of the frame is always logged)."""
 
 
@@ -207,11 +206,91 @@ def _apply(obj: Any, overrides: dict[str, Any], where: str) -> Any:
                 and isinstance(value, int)
                 and not isinstance(value, bool)
             ):
-                value = float(value)
+                try:
+                    value = float(value)
+                except OverflowError:
+                    bounds = field_bounds(names[key])
+                    allowed = f" in {bounds.interval()}" if bounds is not None else ""
+                    raise SlamError(
+                        f"config key {where}{key} must be a finite number{allowed}, got {value}"
+                    ) from None
             elif isinstance(current, (int, float)) and not isinstance(value, (int, float)):
                 raise SlamError(f"config key {where}{key} must be a number, got {value!r}")
             changes[key] = value
     return dataclasses.replace(obj, **changes)
+
+
+def validate_config(cfg: SlamConfig) -> SlamConfig:
+    """``cfg`` itself, once every numeric field (nested configs included) is within its bounds.
+
+    Each ``int``/``float`` field must hold a finite number (an integer for ``int``; never a
+    bool) inside the range in its metadata (:func:`slam.bounds.bounded`), and a field bounded by
+    another (``lt_field``/``le_field``: a minimum and its maximum) must stay below it. Raises
+    :class:`SlamError` with one line naming the key path, the value and the allowed range, e.g.
+    ``config key frontend.max_features must be in [1, 5000], got -5``. Runs on every loaded
+    config (presets included) and again at the start of a run (``slam.runtime.wiring.run_slam``).
+    """
+    _validate(cfg, "")
+    return cfg
+
+
+def _numeric_kind(hint: Any) -> tuple[type | None, bool]:
+    """(int or float, None allowed) for a field's type; (None, False) when not numeric."""
+    optional = False
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        optional = len(args) < len(typing.get_args(hint))
+        if len(args) != 1:
+            return None, False
+        hint = args[0]
+    return (hint, optional) if hint in (int, float) else (None, False)
+
+
+def _show(value: Any) -> str:
+    if isinstance(value, numbers.Integral) and not isinstance(value, bool):
+        return str(int(value))
+    if isinstance(value, numbers.Real) and not isinstance(value, bool):
+        return repr(float(value))
+    return repr(value)
+
+
+def _validate(obj: Any, where: str) -> None:
+    hints = typing.get_type_hints(type(obj))
+    fields = dataclasses.fields(obj)
+    for f in fields:
+        value = getattr(obj, f.name)
+        key = f"{where}{f.name}"
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            _validate(value, f"{key}.")
+            continue
+        kind, optional = _numeric_kind(hints.get(f.name))
+        if kind is None or (optional and value is None):
+            continue
+        bounds = field_bounds(f)
+        allowed = f" in {bounds.interval()}" if bounds is not None else ""
+        hint = f" ({bounds.hint})" if bounds is not None and bounds.hint else ""
+        got = f"got {_show(value)}{hint}"
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            raise SlamError(f"config key {key} must be a number{allowed}, {got}")
+        if kind is int and not isinstance(value, numbers.Integral):
+            raise SlamError(f"config key {key} must be an integer{allowed}, {got}")
+        number = int(value) if isinstance(value, numbers.Integral) else float(value)
+        if not isinstance(number, int) and not math.isfinite(number):
+            raise SlamError(f"config key {key} must be a finite number{allowed}, {got}")
+        if bounds is not None and not bounds.contains(number):
+            raise SlamError(f"config key {key} must be{allowed}, {got}")
+    for f in fields:  # ranges formed by two fields, once each field is in its own range
+        bounds = field_bounds(f)
+        if bounds is None or not bounds.below:
+            continue
+        value, limit = getattr(obj, f.name), getattr(obj, bounds.below)
+        if value < limit or (bounds.below_or_equal and value == limit):
+            continue
+        relation = "at most" if bounds.below_or_equal else "less than"
+        raise SlamError(
+            f"config key {where}{f.name} must be {relation} {where}{bounds.below} "
+            f"({_show(limit)}), got {_show(value)}"
+        )
 
 
 def preset_config(name: str) -> SlamConfig:
@@ -219,7 +298,7 @@ def preset_config(name: str) -> SlamConfig:
     if name not in PRESETS:
         raise SlamError(f"unknown preset {name!r}; presets: {', '.join(sorted(PRESETS))}")
     cfg: SlamConfig = _apply(SlamConfig(preset=name), PRESETS[name], "")
-    return cfg
+    return validate_config(cfg)
 
 
 def load_config(spec: str | None, default_preset: str = "stereo-vo") -> SlamConfig:
@@ -240,7 +319,7 @@ def load_config(spec: str | None, default_preset: str = "stereo-vo") -> SlamConf
     if not isinstance(data, dict):
         raise SlamError(f"{path}: expected a mapping of config keys")
     cfg: SlamConfig = _apply(preset_config(str(data.pop("preset", default_preset))), data, "")
-    return cfg
+    return validate_config(cfg)
 
 
 def config_to_yaml(cfg: SlamConfig) -> str:

@@ -102,8 +102,7 @@ def parse_speed(text: str) -> float:
 
 
 def handle(args: argparse.Namespace) -> int:
-    from slam.config import load_config
-    from slam.runtime.wiring import run_slam
+    from slam.config import load_config, validate_config
     from tools.seq_args import open_from_args
 
     out: Path = args.out
@@ -126,8 +125,11 @@ def handle(args: argparse.Namespace) -> int:
         import dataclasses
 
         cfg.mapping = dataclasses.replace(cfg.mapping, enabled=True)
+    validate_config(cfg)  # with the command line's overrides
     if not seq.calibration.is_stereo:
         raise SlamError(f"{seq.name}: the pipeline needs a stereo sequence (cam0 and cam1)")
+    from slam.runtime.wiring import run_slam  # heavy (OpenCV, GTSAM): once the inputs are fine
+
     result = run_slam(
         seq,
         cfg,

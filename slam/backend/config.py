@@ -4,60 +4,64 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from slam.bounds import bounded
+
 
 @dataclass(frozen=True)
 class BackendConfig:
     """Every tunable of the back end. Units are in the names; defaults suit EuRoC-grade IMUs."""
 
     # --- IMU sanitising -------------------------------------------------------------------------
-    max_accel_m_s2: float = 16.0 * 9.81
+    max_accel_m_s2: float = bounded(16.0 * 9.81, gt=0)
     """Accelerometer saturation limit: samples with any |axis| above it are rejected."""
-    max_gyro_rad_s: float = 35.0
+    max_gyro_rad_s: float = bounded(35.0, gt=0)
     """Gyroscope saturation limit: samples with any |axis| above it are rejected."""
-    imu_gap_warn_factor: float = 3.0
+    # bounds: a nominal interval is 1 sample period: at <= 1 every interval warns
+    imu_gap_warn_factor: float = bounded(3.0, gt=1)
     """An interval longer than this many nominal sample periods is counted and warned about."""
-    imu_gap_max_s: float = 0.1
+    imu_gap_max_s: float = bounded(0.1, gt=0)
     """Longest interval integrated across; between keyframes spanning a longer gap there is no
     IMU factor (the estimator runs on vision, with a weak VO relative-pose factor)."""
-    imu_buffer_s: float = 30.0
+    imu_buffer_s: float = bounded(30.0, gt=0)
     """IMU history kept (seconds before the newest keyframe) for integration and resets."""
 
     # --- initialisation -------------------------------------------------------------------------
     init_mode: str = "auto"
     """"auto" (still start if the IMU before the first keyframe is still, else moving start),
     "still" or "moving"."""
-    still_window_s: float = 1.0
+    still_window_s: float = bounded(1.0, gt=0)
     """Length of IMU history that must be still for a still start."""
-    still_smoothing_s: float = 0.1
+    still_smoothing_s: float = bounded(0.1, ge=0)
     """Still test: readings are first averaged over this long (removes rotor vibration; on
     EuRoC V1_01 the raw accel-norm std is 0.2-0.3 m/s^2 while the vehicle stands still)."""
-    still_accel_std_m_s2: float = 0.15
+    still_accel_std_m_s2: float = bounded(0.15, gt=0)
     """Still test: std of every smoothed accelerometer axis over the window below this."""
-    still_gyro_std_rad_s: float = 0.015
+    still_gyro_std_rad_s: float = bounded(0.015, gt=0)
     """Still test: std of every smoothed gyro axis over the window below this."""
     still_init_method: str = "kalman"
     """"kalman" (filterpy linear KF, the design card's tool) or "align" (scipy align_vectors on
     the mean accel); measured equal accuracy on EuRoC V1_01, "align" is ~50x cheaper."""
-    moving_init_keyframes: int = 10
+    # bounds: init.moving_init needs K >= 3 keyframes
+    moving_init_keyframes: int = bounded(10, ge=3)
     """Minimum keyframes (VO poses + IMU between them) for the moving-start alignment; up to
     three times as many (the newest) are used."""
-    moving_init_min_span_s: float = 1.5
+    moving_init_min_span_s: float = bounded(1.5, ge=0)
     """Minimum time span of the keyframes used for the moving-start alignment."""
-    moving_init_max_gravity_error: float = 0.5
+    moving_init_max_gravity_error: float = bounded(0.5, gt=0)
     """Reject the unconstrained gravity solution if | |g| - g0 | exceeds this (m/s^2) and retry
     with more keyframes."""
 
     # --- smoother -------------------------------------------------------------------------------
-    lag_s: float = 1.0
+    lag_s: float = bounded(1.0, gt=0)
     """Fixed-lag smoother window in seconds (states older than this are marginalised); 1 s is
     about 10 keyframes at the usual keyframe rate. Update cost grows ~linearly with it."""
-    relinearize_threshold: float = 0.05
+    relinearize_threshold: float = bounded(0.05, ge=0)
     """iSAM2 relinearisation threshold (tangent-space units)."""
-    extra_iterations: int = 0
+    extra_iterations: int = bounded(0, ge=0)
     """Extra smoother update() calls per keyframe (each one more Gauss-Newton step)."""
-    pixel_sigma_px: float = 1.0
+    pixel_sigma_px: float = bounded(1.0, gt=0)
     """Projection measurement standard deviation (undistorted pixels)."""
-    huber_k: float = 1.345
+    huber_k: float = bounded(1.345, gt=0)
     """Huber threshold in standard deviations for visual factors."""
     landmark_model: str = "smart"
     """"projection": landmarks are variables with Huber projection factors per camera;
@@ -66,43 +70,44 @@ class BackendConfig:
     Measured on the simulated world: same ATE, about half the CPU per keyframe."""
     right_camera_factors: bool = True
     """Add a projection factor for the right camera too (else it only helps triangulation)."""
-    min_keyframes_per_landmark: int = 2
+    # bounds: a landmark seen by one keyframe constrains no pose
+    min_keyframes_per_landmark: int = bounded(2, ge=2)
     """A landmark enters the smoother once this many keyframes in the window observed it."""
-    max_landmarks_per_keyframe: int = 200
+    max_landmarks_per_keyframe: int = bounded(200, ge=1)
     """Observations kept per keyframe (the first ones the front end sends)."""
-    min_depth_m: float = 0.1
+    min_depth_m: float = bounded(0.1, gt=0, lt_field="max_depth_m")
     """Landmarks closer than this to a camera are not inserted / observations are dropped."""
-    max_depth_m: float = 60.0
+    max_depth_m: float = bounded(60.0, gt=0)
     """Landmarks further than this from the keyframes that see them are not inserted."""
-    outlier_reprojection_px: float = 5.0
+    outlier_reprojection_px: float = bounded(5.0, gt=0)
     """Observations with a reprojection error above this (against the current estimate) are
     rejected before insertion; landmarks with a mean error above it after optimisation are
     culled (no further observations)."""
-    prior_pose_sigma_rad: float = 0.01
+    prior_pose_sigma_rad: float = bounded(0.01, gt=0)
     """Rotation sigma of the first/reset pose prior (yaw and position are gauge freedoms)."""
-    prior_pose_sigma_m: float = 0.01
+    prior_pose_sigma_m: float = bounded(0.01, gt=0)
     """Position sigma of the first/reset pose prior."""
-    prior_velocity_sigma_m_s: float = 0.1
+    prior_velocity_sigma_m_s: float = bounded(0.1, gt=0)
     """Velocity sigma of the first/reset velocity prior."""
-    prior_bias_gyro_sigma_rad_s: float = 0.005
+    prior_bias_gyro_sigma_rad_s: float = bounded(0.005, gt=0)
     """Gyro-bias sigma of the first/reset bias prior."""
-    prior_bias_accel_sigma_m_s2: float = 0.1
+    prior_bias_accel_sigma_m_s2: float = bounded(0.1, gt=0)
     """Accel-bias sigma of the first/reset bias prior."""
-    no_imu_pose_sigma_m: float = 0.05
+    no_imu_pose_sigma_m: float = bounded(0.05, gt=0)
     """Position sigma per keyframe of the VO relative-pose factor used when there is no IMU factor."""
-    no_imu_pose_sigma_rad: float = 0.02
+    no_imu_pose_sigma_rad: float = bounded(0.02, gt=0)
     """Rotation sigma of that VO relative-pose factor."""
-    no_imu_velocity_sigma_m_s: float = 1.0
+    no_imu_velocity_sigma_m_s: float = bounded(1.0, gt=0)
     """Sigma of the velocity random-walk factor used when there is no IMU factor."""
 
     # --- divergence checks ----------------------------------------------------------------------
-    max_velocity_m_s: float = 20.0
+    max_velocity_m_s: float = bounded(20.0, gt=0)
     """A velocity norm above this is a divergence."""
-    max_velocity_jump_m_s: float = 2.0
+    max_velocity_jump_m_s: float = bounded(2.0, gt=0)
     """Optimised velocity differing by more than this from the IMU prediction is a divergence."""
-    max_bias_gyro_rad_s: float = 0.5
+    max_bias_gyro_rad_s: float = bounded(0.5, gt=0)
     """A gyro bias norm above this is a divergence."""
-    max_bias_accel_m_s2: float = 2.0
+    max_bias_accel_m_s2: float = bounded(2.0, gt=0)
     """An accel bias norm above this is a divergence."""
-    max_position_jump_m: float = 1.0
+    max_position_jump_m: float = bounded(1.0, gt=0)
     """An optimised keyframe position farther than this from its prediction is a divergence."""

@@ -4,71 +4,76 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from slam.bounds import bounded
+
 
 @dataclass
 class LoopClosureConfig:
     """Place recognition, geometric verification, plausibility gates and pose-graph weights."""
 
-    max_orb_features: int = 600
+    max_orb_features: int = bounded(600, ge=1)
     """ORB keypoints per keyframe image for the BoW vector and the query side of PnP."""
-    exclude_recent_s: float = 15.0
+    exclude_recent_s: float = bounded(15.0, ge=0)
     """Never match keyframes of the last this many seconds (same place, not a loop)."""
-    exclude_recent_keyframes: int = 10
+    exclude_recent_keyframes: int = bounded(10, ge=0)
     """... nor the last this many keyframes."""
-    min_eligible_keyframes: int = 10
+    min_eligible_keyframes: int = bounded(10, ge=0)
     """No detection until this many keyframes are older than the excluded recent ones."""
-    min_consecutive: int = 3
+    min_consecutive: int = bounded(3, ge=1)
     """Temporal consistency: consecutive keyframe queries agreeing on the place before a loop
     is verified."""
-    min_normalised_score: float = 0.3
+    min_normalised_score: float = bounded(0.3, ge=0)
     """BoW score / score against the recent neighbours needed by a candidate."""
-    candidates_to_verify: int = 3
+    candidates_to_verify: int = bounded(3, ge=1)
     """Verify up to this many keyframes of the winning island (best score first)."""
-    min_inliers: int = 30
+    # bounds: a PnP pose needs 4 points (solvePnPRansac asserts it)
+    min_inliers: int = bounded(30, ge=4)
     """PnP inliers needed to accept a loop."""
-    min_inlier_ratio: float = 0.35
+    min_inlier_ratio: float = bounded(0.35, ge=0, le=1)
     """... making up at least this fraction of the descriptor matches."""
-    reprojection_px: float = 2.5
+    reprojection_px: float = bounded(2.5, gt=0)
     """PnP RANSAC inlier threshold, pixels."""
-    gate_base_m: float = 0.3
+    gate_base_m: float = bounded(0.3, ge=0)
     """Plausibility gate: a loop may move the query keyframe by at most gate_base_m +
     gate_ratio * (odometry path length since the candidate) ..."""
-    gate_ratio: float = 0.05
+    gate_ratio: float = bounded(0.05, ge=0)
     """... (5% of the path: generous for VIO drift, far below aliased places metres apart)."""
-    gate_base_deg: float = 4.0
+    gate_base_deg: float = bounded(4.0, ge=0, le=180)
     """... and rotate it by at most gate_base_deg + gate_deg_per_m * path length."""
-    gate_deg_per_m: float = 0.5
+    gate_deg_per_m: float = bounded(0.5, ge=0)
     """Rotation drift allowance per metre of path, degrees."""
-    confirm_translation_m: float = 0.2
+    confirm_translation_m: float = bounded(0.2, gt=0)
     """Loops between different map segments (no odometry between them) need a second verified
     loop whose implied alignment agrees within this translation ..."""
-    confirm_rotation_deg: float = 3.0
+    confirm_rotation_deg: float = bounded(3.0, gt=0, le=180)
     """... and this rotation."""
-    confirm_within_keyframes: int = 10
+    confirm_within_keyframes: int = bounded(10, ge=1)
     """The confirming loop must come within this many keyframes of the first."""
-    min_keyframes_between_loops: int = 5
+    min_keyframes_between_loops: int = bounded(5, ge=0)
     """After an accepted loop, skip verification for this many keyframes (the next ones see
     the same place and add little)."""
-    odom_sigma_m: float = 0.001
+    # bounds: the floor terms keep a zero-length, zero-time edge's information finite
+    odom_sigma_m: float = bounded(0.001, gt=0)
     """Odometry edge translation sigma (per axis), metres: the root sum of squares of this,
     odom_sigma_ratio * edge length and odom_sigma_m_per_sqrt_s * sqrt(edge duration)."""
-    odom_sigma_ratio: float = 0.005
+    odom_sigma_ratio: float = bounded(0.005, ge=0)
     """Odometry translation sigma per metre of edge length."""
-    odom_sigma_m_per_sqrt_s: float = 0.004
+    odom_sigma_m_per_sqrt_s: float = bounded(0.004, ge=0)
     """Odometry translation random walk, m/sqrt(s) (measured on the synthetic hall: ~2 mm per
     0.2 s keyframe edge, growing as the square root over 10-100 edges)."""
-    odom_sigma_rad: float = 0.0001
+    # bounds: as odom_sigma_m
+    odom_sigma_rad: float = bounded(0.0001, gt=0)
     """Odometry edge rotation sigma (per axis), radians: the root sum of squares of this,
     odom_sigma_rad_ratio * edge rotation angle and odom_sigma_rad_per_sqrt_s * sqrt(duration)."""
-    odom_sigma_rad_ratio: float = 0.01
+    odom_sigma_rad_ratio: float = bounded(0.01, ge=0)
     """Odometry rotation sigma per radian turned."""
-    odom_sigma_rad_per_sqrt_s: float = 0.0007
+    odom_sigma_rad_per_sqrt_s: float = bounded(0.0007, ge=0)
     """Odometry rotation random walk, rad/sqrt(s) (measured: ~0.02 deg per 0.2 s edge)."""
-    loop_sigma_m: float = 0.01
+    loop_sigma_m: float = bounded(0.01, gt=0)
     """Loop edge translation sigma (landmark-to-landmark verification), metres."""
-    loop_sigma_rad: float = 0.003
+    loop_sigma_rad: float = bounded(0.003, gt=0)
     """Loop edge rotation sigma (landmark-to-landmark verification), radians."""
-    orb_loop_sigma_factor: float = 3.0
+    orb_loop_sigma_factor: float = bounded(3.0, gt=0)
     """Loops verified with whole-image ORB keypoints (when landmark to landmark fails) get
     sigmas this many times larger (measured: ~4x the error)."""
     robust: str = "gnc"
@@ -77,7 +82,7 @@ class LoopClosureConfig:
     debug_graph: bool = False
     """Put the final pose graph in the run's stats (``loop_closure.graph``: keyframe times,
     segments, odometry and corrected poses, loop edges) for offline analysis."""
-    robust_sigma_scale: float = 4.0
+    robust_sigma_scale: float = bounded(4.0, gt=0)
     """The robust kernel judges loop edges as if every sigma were this many times larger
     (GNC: inlier chi2 bound 16.8 x scale^2). The sigmas model VIO drift, and scaling them all
     leaves the optimum unchanged; but a true loop after more drift than that (stereo VO
@@ -86,33 +91,35 @@ class LoopClosureConfig:
     """At the end of a run with loops, re-estimate every keyframe and landmark together, with
     the landmarks the loops matched fused (``slam.loop.global_ba``): the loop-closed trajectory
     then no longer inherits the first pass's odometry error."""
-    global_ba_pixel_sigma_px: float = 1.0
+    global_ba_pixel_sigma_px: float = bounded(1.0, gt=0)
     """Reprojection sigma of the global adjustment, pixels."""
-    global_ba_odometry_sigma_scale: float = 0.3
+    global_ba_odometry_sigma_scale: float = bounded(0.3, ge=0)
     """The odometry edges enter the global adjustment with their pose-graph sigmas times this
     (0: left out)."""
     global_ba_fusion: bool = True
     """Before the global adjustment, match every keyframe landmark to landmark against the
     keyframes of *other passes* near its corrected pose (ORB-SLAM's loop fusion), so the
     adjustment fuses the revisits' landmarks everywhere and not only at the loops."""
-    global_ba_fusion_radius_m: float = 0.5
+    global_ba_fusion_radius_m: float = bounded(0.5, gt=0)
     """Fusion candidates: corrected positions at most this far apart ..."""
-    global_ba_fusion_angle_deg: float = 30.0
+    # bounds: the fusion score divides by 1 - cos(angle)
+    global_ba_fusion_angle_deg: float = bounded(30.0, gt=0, le=180)
     """... viewing directions (camera z) at most this many degrees apart ..."""
-    global_ba_fusion_min_gap_s: float = 3.0
+    global_ba_fusion_min_gap_s: float = bounded(3.0, ge=0)
     """... and at least this far apart in time (another pass, not the same track)."""
-    global_ba_fusion_candidates: int = 2
+    global_ba_fusion_candidates: int = bounded(2, ge=1)
     """Per keyframe, match at most this many candidates, each from a different pass."""
-    global_ba_fusion_gate_m: float = 0.1
+    global_ba_fusion_gate_m: float = bounded(0.1, gt=0)
     """A fusion match is kept only when its relative pose agrees with the corrected poses
     within this translation ..."""
-    global_ba_fusion_gate_deg: float = 3.0
+    global_ba_fusion_gate_deg: float = bounded(3.0, gt=0, le=180)
     """... and this rotation."""
     pgo_process: bool = True
     """Run pose-graph optimisation in a worker process (GTSAM holds the GIL)."""
-    reloc_candidates: int = 3
+    reloc_candidates: int = bounded(3, ge=1)
     """Relocalisation: verify up to this many best BoW hits."""
-    reloc_min_inliers: int = 15
+    # bounds: PnP against the query image's ORB keypoints: at most max_orb_features
+    reloc_min_inliers: int = bounded(15, ge=4, le_field="max_orb_features")
     """Relocalisation: PnP inliers needed (measured: after a 2 s blackout on the synthetic loop,
     the best of the last keyframes gives 20-26 inliers of ~200 landmark descriptors). The front
     end also rejects a relocalisation that contradicts its IMU dead-reckoned pose."""

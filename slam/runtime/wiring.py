@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from datasets.sequence import Sequence
-from slam.config import SlamConfig
+from slam.config import SlamConfig, validate_config
 from slam.frontend.tracker import FrontEnd
 from slam.imu_buffer import ImuBuffer
 from slam.messages import (
@@ -144,6 +144,7 @@ def run_slam(
     (``interrupted``, ``exit_code``). ``keep_viewer``: a ``serve`` viewer's server outlives the
     run (``result.session.stop_server()`` ends it).
     """
+    validate_config(cfg)  # again: callers may have changed it after loading
     control = control or RunControl()
     with handle_stop_signals(control):
         result = _run(seq, cfg, out_dir, rerun_mode, progress, control)
