@@ -21,6 +21,7 @@ import shutil
 import socket
 import subprocess
 import sys
+import threading
 import time
 import urllib.parse
 from dataclasses import dataclass
@@ -66,7 +67,8 @@ def _blueprint() -> Any:
             ),
             column_shares=[3, 2],
         ),
-        rrb.TimePanel(play_state="following"),  # a live run: the view follows the newest data
+        # A live run: the view follows the newest data.
+        rrb.TimePanel(state="collapsed", play_state="following"),
         collapse_panels=True,
     )
 
@@ -105,15 +107,22 @@ class ViewerSession:
     web_url: str | None = None
 
     def close(self, timeout_s: float = 5.0) -> None:
-        """Flush (bounded) and disconnect; the server keeps running until :meth:`stop_server`."""
-        try:
-            self.rec.flush(timeout_sec=timeout_s)
-        except Exception as exc:  # a viewer that went away must not fail the run
-            log.warning("viewer: flush failed (%s)", exc)
-        try:
-            self.rec.disconnect()
-        except Exception as exc:
-            log.warning("viewer: disconnect failed (%s)", exc)
+        """Flush and disconnect, within ``timeout_s`` (in a daemon thread: a viewer that stopped
+        reading must not keep the run from ending); the server keeps running until
+        :meth:`stop_server`."""
+
+        def end() -> None:
+            try:
+                self.rec.flush(timeout_sec=timeout_s)
+                self.rec.disconnect()
+            except Exception as exc:  # a viewer that went away must not fail the run
+                log.warning("viewer: %s", exc)
+
+        closer = threading.Thread(target=end, name="viewer-close", daemon=True)
+        closer.start()
+        closer.join(timeout_s + 1.0)
+        if closer.is_alive():
+            log.warning("viewer: did not take the end of the recording within %.0f s", timeout_s)
 
     def server_wait(self) -> None:
         """Block while the server runs (until Ctrl-C)."""
@@ -129,9 +138,23 @@ class ViewerSession:
                 self.server.kill()
 
 
+def _rerun_binary() -> str | None:
+    """The rerun executable itself: the ``rerun`` script on PATH is a Python wrapper that
+    starts it as a child, which terminating the wrapper would leave running."""
+    try:
+        import rerun_cli
+
+        exe = Path(rerun_cli.__file__).parent / "rerun"
+        if exe.is_file():
+            return str(exe)
+    except ImportError:
+        pass
+    return shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun")
+
+
 def _serve(rec: Any, bp: Any, host: str) -> ViewerSession:
     """Start ``rerun --serve-web`` bound to ``host`` and stream the recording to it."""
-    exe = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun")
+    exe = _rerun_binary()
     if exe is None:
         raise SlamError("--rerun serve: the rerun command is not installed (pip install rerun-sdk)")
     grpc_port, web_port = _free_port(LOCALHOST), _free_port(LOCALHOST)
@@ -147,8 +170,12 @@ def _serve(rec: Any, bp: Any, host: str) -> ViewerSession:
         "--server-memory-limit",
         "25%",
     ]
-    server = subprocess.Popen(
-        cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    server = subprocess.Popen(  # its own session: Ctrl-C in the run's terminal is ours to handle
+        cmd,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
     )
     if not _wait_for_port(LOCALHOST, grpc_port, server, timeout_s=20.0):
         server.terminate()
@@ -244,7 +271,14 @@ class RerunStage(Stage):
         self.kf_positions: list[np.ndarray] = []
         self.last_state = ""
         self.n_results = 0
-        cam = calib.cameras[0]
+        self.static_logged = False
+
+    def _log_static(self) -> None:
+        """The rig, once, from the viewer's own thread (a logging call may block; the stage's
+        caller must never)."""
+        self.static_logged = True
+        rr, rec = self.rr, self.rec
+        cam = self.calib.cameras[0]
         intr = cam.intrinsics
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         rec.log(
@@ -276,6 +310,8 @@ class RerunStage(Stage):
                 )
 
     def _process(self, msg: Any) -> None:
+        if not self.static_logged:
+            self._log_static()
         if isinstance(msg, TrackingResult):
             self._log_result(msg)
         elif isinstance(msg, Keyframe):
