@@ -108,12 +108,12 @@ def test_moving_start_alignment_on_simulated_flight(seed):
 def test_backend_still_start_on_real_euroc_imu(euroc):
     """The whole back end on the real stream: keyframes carry ground-truth poses as 'VO' (in the
     gravity-aligned Vicon frame) and no observations; it must initialise from the still start."""
-    from slam.backend.sim import pinhole_euroc_calibration
+    from datasets.rigs import euroc_like_calibration
     from slam.backend.smoother import VioBackend
     from slam.messages import ImuSample, Keyframe
 
     imu, gt = euroc
-    calib = pinhole_euroc_calibration()
+    calib = euroc_like_calibration(distortion=False)
     backend = VioBackend(calib, BackendConfig(still_init_method="align"))
     t_imu = imu[:, 0].astype(np.int64)
     j = 0

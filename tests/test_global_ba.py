@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from datasets.synth.generator import euroc_like_calibration
+from datasets.rigs import euroc_like_calibration
 from slam.evaluation.align import umeyama
 from slam.geometry import invert_transform, make_transform, so3_exp
 from slam.loop.closer import odometry_sigmas

@@ -15,49 +15,15 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from slam.calibration import Calibration, CameraCalibration, CameraIntrinsics, ImuCalibration
+from datasets.rigs import euroc_like_calibration
+from slam.calibration import Calibration, CameraIntrinsics, ImuCalibration
 from slam.geometry import invert_transform, make_transform, transform_points
 from slam.messages import ImuSample, Keyframe
 
 GRAVITY_M_S2 = 9.81
 
-# EuRoC MAV cam0 / cam1 (pinhole part) and their body_from_cam (T_BS), from the sensor.yaml files.
-_EUROC_K = ((458.654, 457.296, 367.215, 248.375), (457.587, 456.134, 379.999, 255.238))
-_EUROC_BODY_FROM_CAM = (
-    np.array(
-        [
-            [0.0148655429818, -0.999880929698, 0.00414029679422, -0.0216401454975],
-            [0.999557249008, 0.0149672133247, 0.025715529948, -0.064676986768],
-            [-0.0257744366974, 0.00375618835797, 0.999660727178, 0.00981073058949],
-            [0.0, 0.0, 0.0, 1.0],
-        ]
-    ),
-    np.array(
-        [
-            [0.0125552670891, -0.999755099723, 0.0182237714554, -0.0198435579556],
-            [0.999598781151, 0.0130119051815, 0.0251588363115, 0.0453689425024],
-            [-0.0253898008918, 0.0179005838253, 0.999517347078, 0.00786212447038],
-            [0.0, 0.0, 0.0, 1.0],
-        ]
-    ),
-)
 # EuRoC's IMU x axis points up when level, its cameras look along body +z: body axes in world.
 _R_LEVEL = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])
-
-
-def pinhole_euroc_calibration() -> Calibration:
-    """Undistorted EuRoC stereo rig (752x480) with the EuRoC extrinsics and IMU noise (the
-    back-end simulation projects landmarks without distortion; the rendered sequences use
-    ``datasets.synth.generator.euroc_like_calibration``)."""
-    cams = tuple(
-        CameraCalibration(
-            name=f"cam{i}",
-            intrinsics=CameraIntrinsics(752, 480, *_EUROC_K[i]),
-            body_from_cam=_EUROC_BODY_FROM_CAM[i].copy(),
-        )
-        for i in range(2)
-    )
-    return Calibration(cameras=cams, imu=ImuCalibration(gravity_m_s2=GRAVITY_M_S2))
 
 
 @dataclass(frozen=True)
@@ -258,7 +224,7 @@ def generate_world(
     ``start_s`` is where on the analytic path the flight starts (in motion unless ``still_s`` >
     0, which holds the vehicle still for that long and then ramps smoothly into motion)."""
     rng = np.random.default_rng(seed)
-    calib = pinhole_euroc_calibration()
+    calib = euroc_like_calibration(distortion=False)  # no images: ideal lenses
     imu_cal = calib.imu
     assert imu_cal is not None
     traj = RoomTrajectory(start_s=start_s, still_s=still_s)
