@@ -131,13 +131,14 @@ def test_buffer_rejects_counts_and_warns(caplog):
 
 def test_dead_reckoning_follows_the_simulated_truth():
     """The front end's IMU pose prior (sample-and-hold dead reckoning) over 0.2 s of flight."""
-    from slam.backend.sim import generate_world
+    from datasets.synth.vio_world import generate_world
     from slam.imu_buffer import ImuBuffer, propagate_pose
+    from slam.messages import ImuBatch
 
     world = generate_world(duration_s=3.0, seed=1, imu_noise=False, landmarks_per_keyframe=10)
-    imu = world.imu
+    imu = world.imu.arrays
     buf = ImuBuffer(keep_ns=None)
-    buf.extend(imu.samples())
+    buf.extend(ImuBatch(imu.t_ns, imu.gyro_rad_s, imu.accel_m_s2).samples())
     kf0, kf1 = world.keyframes[5], world.keyframes[7]  # 0.2 s apart
     t0_s = (kf0.t_ns - 1_000_000_000) * 1e-9
     out = propagate_pose(
@@ -145,9 +146,9 @@ def test_dead_reckoning_follows_the_simulated_truth():
         kf0.t_ns,
         kf1.t_ns,
         world.world_from_body_gt[5],
-        world.trajectory.velocity(np.array([t0_s]))[0],
-        imu.bias_gyro_rad_s[0],
-        imu.bias_accel_m_s2[0],
+        world.trajectory.sample(np.array([t0_s])).velocities_m_s[0],
+        world.imu.gyro_bias_rad_s[0],
+        world.imu.accel_bias_m_s2[0],
         world.calibration.imu.gravity_m_s2,
     )
     assert out is not None
