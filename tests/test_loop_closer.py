@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from datasets.synth.keyframes import Drift, SyntheticKeyframe, ground_truth_keyframes
 from slam.evaluation.align import umeyama
 from slam.geometry import invert_transform, make_transform, rotation_angle_rad, so3_exp
 from slam.loop.closer import LoopCloser, loop_closed_poses
 from slam.loop.config import LoopClosureConfig
-from slam.loop.synthetic import Drift, SyntheticKeyframe, ground_truth_keyframes
 from slam.loop.vocabulary import Vocabulary, load_default_vocabulary
 from slam.messages import LoopCorrection
 

@@ -40,13 +40,13 @@ def main(argv: list[str] | None = None) -> int:
     from tqdm import tqdm
 
     from datasets.synth import make_synthetic_sequence
+    from datasets.synth.keyframes import Drift
     from slam.config import FrontendConfig
     from slam.frontend.tracker import FrontEnd
     from slam.geometry import invert_transform
     from slam.loop.closer import LoopCloser, loop_closed_poses
     from slam.loop.database import LoopDetector
     from slam.loop.relocaliser import Relocaliser
-    from slam.loop.synthetic import Drift
 
     seq = make_synthetic_sequence(
         profile="loop", duration_s=args.duration, seed=args.seed, aliasing=args.aliasing
