@@ -11,14 +11,10 @@ from collections.abc import Sequence as SequenceOf
 
 import numpy as np
 
+from datasets.rigs import small_rig_calibration
 from datasets.sequence import ImuArrays, Sequence
-from slam.calibration import (
-    Calibration,
-    CameraCalibration,
-    CameraIntrinsics,
-    ImuCalibration,
-)
-from slam.geometry import make_transform, matrix_to_quat_wxyz
+from slam.calibration import Calibration
+from slam.geometry import matrix_to_quat_wxyz
 from slam.messages import StereoFrame
 from slam.trajectory import Trajectory
 
@@ -55,25 +51,6 @@ class InMemorySequence(Sequence):
     def frame(self, index: int) -> StereoFrame:
         right = self._right[index] if self._right is not None else None
         return StereoFrame(int(self._t_ns[index]), self._left[index], right, index)
-
-
-def small_rig_calibration(
-    width: int = 752, height: int = 480, stereo: bool = True, time_offset_ns: int = 0
-) -> Calibration:
-    """A stereo rig for small in-memory test images: EuRoC's focal lengths and radtan
-    distortion at any image size, 11 cm baseline, cameras looking along body +x (the full
-    EuRoC rig is ``datasets.synth.generator.euroc_like_calibration``)."""
-    intr = CameraIntrinsics(
-        width, height, 458.654, 457.296, width / 2 - 8.8, height / 2 + 8.4, "radtan",
-        (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05),
-    )  # fmt: skip
-    cam_rot = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # z_cam = x_body
-    cams = [CameraCalibration("cam0", intr, make_transform(cam_rot, np.array([0.0, 0.055, 0.0])))]
-    if stereo:
-        cams.append(
-            CameraCalibration("cam1", intr, make_transform(cam_rot, np.array([0.0, -0.055, 0.0])))
-        )
-    return Calibration(tuple(cams), ImuCalibration(), time_offset_ns=time_offset_ns)
 
 
 def textured_image(rng: np.random.Generator, width: int, height: int) -> np.ndarray:

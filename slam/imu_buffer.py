@@ -1,50 +1,161 @@
-"""A thread-safe, time-bounded buffer of IMU samples and gyro integration between two times."""
+"""The IMU sample store of the front and back ends, and the front end's IMU integration.
+
+``ImuBuffer`` is the one IMU store: the player fills the front end's (gyro prediction and pose
+prior), the back end fills its own (preintegration, initialisation). Both reject non-finite
+and out-of-order samples and count every problem in ``stats``; what differs is configured:
+
+- the front end's (``ImuBuffer()``) forgets samples older than ``keep_ns`` by itself and stays
+  quiet (the back end reports the same problems once);
+- the back end's (``slam.backend.imu.backend_imu_buffer``) keeps samples until ``trim()``,
+  also rejects saturated samples, counts gaps and logs every kind of problem (its ``stats``
+  go into stats.json ``backend.imu``).
+
+Every read and write holds a lock (the player appends while the front end reads): ``window``
+returns a new list, ``arrays`` cached arrays that are replaced, never modified, when the samples
+change.
+"""
 
 from __future__ import annotations
 
 import bisect
+import logging
 import math
 import threading
 from collections.abc import Iterable
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from slam.geometry import so3_exp_batch
 from slam.messages import ImuSample
 
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ImuStats:
+    """Counters of IMU data problems (all samples are counted once)."""
+
+    accepted: int = 0
+    rejected_nonfinite: int = 0
+    rejected_saturated: int = 0
+    rejected_out_of_order: int = 0
+    gaps_warned: int = 0
+    intervals_without_imu: int = 0  # keyframe intervals that got no IMU factor (the back end's)
+    messages: list[str] = field(default_factory=list)
+
+    @property
+    def rejected(self) -> int:
+        return self.rejected_nonfinite + self.rejected_saturated + self.rejected_out_of_order
+
 
 class ImuBuffer:
-    """Append-only (in time order) IMU store that forgets samples older than ``keep_ns``.
+    """Time-ordered IMU samples: sanitised on the way in, read as sample windows or arrays.
 
-    The player appends; the front end reads windows (binary search on a list of times: the
-    front end calls this twice per frame, so it must not copy the whole buffer). Reads copy out
-    under the lock, so no caller ever sees a half-written sample.
+    ``keep_ns``: samples older than this before the newest are forgotten (in bulk, once the
+    buffer spans twice as long); None keeps everything until :meth:`trim`.
+    ``max_gyro_rad_s`` / ``max_accel_m_s2``: saturation limits (any axis above them: rejected).
+    ``gap_warn_ns``: an interval between accepted samples longer than this is counted as a gap.
+    ``log_problems``: log a warning on the first problem of a kind and every 100th after it.
     """
 
-    def __init__(self, keep_ns: int = 5_000_000_000):
+    _WARN_EVERY = 100  # after the first warning of a kind, log every this many occurrences
+
+    def __init__(
+        self,
+        keep_ns: int | None = 5_000_000_000,
+        *,
+        max_gyro_rad_s: float = math.inf,
+        max_accel_m_s2: float = math.inf,
+        gap_warn_ns: float = math.inf,
+        log_problems: bool = False,
+    ) -> None:
+        self.stats = ImuStats()
+        self._keep_ns = keep_ns
+        self._max_gyro_rad_s = max_gyro_rad_s
+        self._max_accel_m_s2 = max_accel_m_s2
+        self._check_saturation = math.isfinite(max_gyro_rad_s) or math.isfinite(max_accel_m_s2)
+        self._gap_warn_ns = gap_warn_ns
+        self._log_problems = log_problems
         self._lock = threading.Lock()
         self._t: list[int] = []
         self._samples: list[ImuSample] = []
-        self._keep_ns = keep_ns
+        self._cache: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
-    def append(self, sample: ImuSample) -> None:
-        self.extend((sample,))
+    def __len__(self) -> int:
+        return len(self._t)
 
-    def extend(self, samples: Iterable[ImuSample]) -> None:
-        """Append samples in time order (one lock for all of them)."""
+    # ------------------------------------------------------------------ writing
+    def add(self, sample: ImuSample) -> bool:
+        """Append one sample; returns False (and counts it) when it is rejected."""
         with self._lock:
-            for sample in samples:
-                if not math.isfinite(float(np.sum(sample.gyro_rad_s) + np.sum(sample.accel_m_s2))):
-                    continue  # the back end counts and reports bad samples; the front end skips
-                if self._t and sample.t_ns <= self._t[-1]:
-                    continue
-                self._t.append(sample.t_ns)
-                self._samples.append(sample)
-            if self._t and self._t[-1] - self._t[0] > 2 * self._keep_ns:  # trim in bulk
-                cut = bisect.bisect_left(self._t, self._t[-1] - self._keep_ns)
-                del self._t[:cut]
-                del self._samples[:cut]
+            accepted = self._accept(sample)
+            self._forget_old()
+        return accepted
 
+    def extend(self, samples: Iterable[ImuSample]) -> int:
+        """Append samples in time order (one lock for all of them); returns how many were kept."""
+        with self._lock:
+            accepted = sum(self._accept(sample) for sample in samples)
+            self._forget_old()
+        return accepted
+
+    def trim(self, before_ns: int) -> None:
+        """Drop samples older than ``before_ns`` except the last one before it (for bracketing)."""
+        with self._lock:
+            k = bisect.bisect_right(self._t, before_ns) - 1
+            if k > 0:
+                self._drop_first(k)
+
+    def _warn(self, kind: str, count: int, text: str) -> None:
+        if self._log_problems and (count == 1 or count % self._WARN_EVERY == 0):
+            msg = f"IMU: {text} ({kind} count {count})"
+            log.warning(msg)
+            if len(self.stats.messages) < 50:
+                self.stats.messages.append(msg)
+
+    def _accept(self, sample: ImuSample) -> bool:
+        gyro = np.asarray(sample.gyro_rad_s, dtype=float).reshape(3)
+        accel = np.asarray(sample.accel_m_s2, dtype=float).reshape(3)
+        s = self.stats
+        if not (np.all(np.isfinite(gyro)) and np.all(np.isfinite(accel))):
+            s.rejected_nonfinite += 1
+            self._warn("nonfinite", s.rejected_nonfinite, f"non-finite sample at t={sample.t_ns}")
+            return False
+        if self._check_saturation and (
+            np.abs(accel).max() > self._max_accel_m_s2 or np.abs(gyro).max() > self._max_gyro_rad_s
+        ):
+            s.rejected_saturated += 1
+            self._warn("saturated", s.rejected_saturated, f"saturated sample at t={sample.t_ns}")
+            return False
+        if self._t and sample.t_ns <= self._t[-1]:
+            s.rejected_out_of_order += 1
+            self._warn(
+                "out_of_order", s.rejected_out_of_order, f"non-increasing time t={sample.t_ns}"
+            )
+            return False
+        if self._t:
+            gap_ns = sample.t_ns - self._t[-1]
+            if gap_ns > self._gap_warn_ns:
+                s.gaps_warned += 1
+                self._warn(
+                    "gap", s.gaps_warned, f"gap of {gap_ns * 1e-9:.3f} s before t={sample.t_ns}"
+                )
+        self._t.append(int(sample.t_ns))
+        self._samples.append(sample)
+        self._cache = None
+        s.accepted += 1
+        return True
+
+    def _forget_old(self) -> None:
+        if self._keep_ns is not None and self._t and self._t[-1] - self._t[0] > 2 * self._keep_ns:
+            self._drop_first(bisect.bisect_left(self._t, self._t[-1] - self._keep_ns))
+
+    def _drop_first(self, count: int) -> None:
+        del self._t[:count], self._samples[:count]
+        self._cache = None
+
+    # ------------------------------------------------------------------ reading
     def window(self, t0_ns: int, t1_ns: int) -> list[ImuSample]:
         """Samples with t0 - one sample <= t <= t1 + one sample (enough to cover [t0, t1])."""
         with self._lock:
@@ -53,6 +164,24 @@ class ImuBuffer:
             i0 = max(bisect.bisect_right(self._t, t0_ns) - 1, 0)
             i1 = min(bisect.bisect_left(self._t, t1_ns) + 1, len(self._t))
             return self._samples[i0:i1]
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(t_ns (N,), gyro (N, 3), accel (N, 3)) of the kept samples (cached until changed)."""
+        with self._lock:
+            if self._cache is None:
+                samples = self._samples
+                self._cache = (
+                    np.asarray(self._t, dtype=np.int64),
+                    np.array([s.gyro_rad_s for s in samples], dtype=float).reshape(-1, 3),
+                    np.array([s.accel_m_s2 for s in samples], dtype=float).reshape(-1, 3),
+                )
+            return self._cache
+
+    def arrays_between(self, t0_ns: int, t1_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`arrays` of the samples with t0_ns <= t <= t1_ns (copies)."""
+        t, g, a = self.arrays()
+        m = (t >= t0_ns) & (t <= t1_ns)
+        return t[m], g[m], a[m]
 
 
 def _intervals(
@@ -102,8 +231,9 @@ def propagate_pose(
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """Dead-reckon (world_from_body, velocity) from t0 to t1 with the IMU (world z up).
 
-    Piecewise-constant samples, the same model as the preintegration. Returns None when the
-    samples do not cover [t0, t1]. Used for the front end's pose prior, not for estimation.
+    Piecewise-constant samples (the back end's preintegration integrates trapezoidal pieces,
+    ``slam.backend.imu.integration_pieces``). Returns None when the samples do not cover
+    [t0, t1]. Used for the front end's pose prior, not for estimation.
     Vectorised over the samples except for the chain of rotations.
     """
     if t1_ns <= t0_ns:

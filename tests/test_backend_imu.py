@@ -11,10 +11,11 @@ from conftest import require
 
 from slam.backend.config import BackendConfig
 from slam.backend.imu import (
-    ImuBuffer,
+    backend_imu_buffer,
     integrate_pieces,
     integration_pieces,
     make_bias,
+    preintegrate,
     preintegration_params,
 )
 from slam.calibration import ImuCalibration
@@ -96,7 +97,7 @@ def test_gap_longer_than_limit_gives_no_preintegration():
 
 
 def test_buffer_rejects_counts_and_warns(caplog):
-    buf = ImuBuffer(ImuCalibration(), BackendConfig())
+    buf = backend_imu_buffer(ImuCalibration(), BackendConfig())
     good = lambda t: ImuSample(t, np.array([0.01, 0.0, 0.0]), np.array([0.0, 0.0, 9.81]))  # noqa: E731
     with caplog.at_level(logging.WARNING):
         assert buf.add(good(0))
@@ -121,37 +122,40 @@ def test_buffer_rejects_counts_and_warns(caplog):
     # the gap blocks preintegration across it, but not before it
     params = preintegration_params(ImuCalibration())
     bias = make_bias(np.zeros(3), np.zeros(3))
-    assert buf.preintegrate(params, bias, 0, 25_000_000) is not None
-    assert buf.preintegrate(params, bias, 20_000_000, 500_000_000) is None
+    max_gap_s = BackendConfig().imu_gap_max_s
+    assert preintegrate(buf, params, bias, 0, 25_000_000, max_gap_s) is not None
+    assert preintegrate(buf, params, bias, 20_000_000, 500_000_000, max_gap_s) is None
     buf.trim(400_000_000)
     assert len(buf) == 2  # the last sample before the trim time is kept for bracketing
 
 
-def test_propagate_state_follows_the_simulated_truth():
-    from slam.backend.imu import propagate_state
-    from slam.backend.sim import generate_world
+def test_dead_reckoning_follows_the_simulated_truth():
+    """The front end's IMU pose prior (sample-and-hold dead reckoning) over 0.2 s of flight."""
+    from datasets.synth.vio_world import generate_world
+    from slam.imu_buffer import ImuBuffer, propagate_pose
+    from slam.messages import ImuBatch
 
     world = generate_world(duration_s=3.0, seed=1, imu_noise=False, landmarks_per_keyframe=10)
-    params = preintegration_params(world.calibration.imu)
-    imu = world.imu
+    imu = world.imu.arrays
+    buf = ImuBuffer(keep_ns=None)
+    buf.extend(ImuBatch(imu.t_ns, imu.gyro_rad_s, imu.accel_m_s2).samples())
     kf0, kf1 = world.keyframes[5], world.keyframes[7]  # 0.2 s apart
     t0_s = (kf0.t_ns - 1_000_000_000) * 1e-9
-    out = propagate_state(
-        world.world_from_body_gt[5],
-        world.trajectory.velocity(np.array([t0_s]))[0],
-        imu.bias_gyro_rad_s[0],
-        imu.bias_accel_m_s2[0],
+    out = propagate_pose(
+        buf.window(kf0.t_ns, kf1.t_ns),
         kf0.t_ns,
         kf1.t_ns,
-        imu.t_ns,
-        imu.gyro_rad_s,
-        imu.accel_m_s2,
-        params,
+        world.world_from_body_gt[5],
+        world.trajectory.sample(np.array([t0_s])).velocities_m_s[0],
+        world.imu.gyro_bias_rad_s[0],
+        world.imu.accel_bias_m_s2[0],
+        world.calibration.imu.gravity_m_s2,
     )
     assert out is not None
     pose, _ = out
-    assert np.linalg.norm(pose[:3, 3] - world.world_from_body_gt[7][:3, 3]) < 1e-3
-    assert propagate_state(
-        pose, np.zeros(3), np.zeros(3), np.zeros(3), kf1.t_ns, imu.t_ns[-1] + 10**9,
-        imu.t_ns, imu.gyro_rad_s, imu.accel_m_s2, params,
-    ) is None  # fmt: skip
+    assert np.linalg.norm(pose[:3, 3] - world.world_from_body_gt[7][:3, 3]) < 1e-3  # 0.06 mm
+    t_end = int(imu.t_ns[-1]) + 10**9
+    assert (
+        propagate_pose(buf.window(kf1.t_ns, t_end), kf1.t_ns, t_end, pose, *np.zeros((3, 3)))
+        is None
+    )  # not covered

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from conftest import require
 
+from datasets.synth.vio_world import generate_world
 from slam.backend.config import BackendConfig
 from slam.backend.init import (
     find_still_prefix,
@@ -15,7 +16,6 @@ from slam.backend.init import (
     still_init_kalman,
     world_from_vo_gravity,
 )
-from slam.backend.sim import generate_world
 from slam.calibration import ImuCalibration
 from slam.geometry import quat_wxyz_to_matrix, so3_log, transform_points
 
@@ -86,9 +86,9 @@ def test_moving_start_alignment_on_simulated_flight(seed):
     res = moving_init(
         np.array([k.t_ns for k in kfs]),
         np.array([k.world_from_body_vo for k in kfs]),
-        world.imu.t_ns,
-        world.imu.gyro_rad_s,
-        world.imu.accel_m_s2,
+        world.imu.arrays.t_ns,
+        world.imu.arrays.gyro_rad_s,
+        world.imu.arrays.accel_m_s2,
         world.calibration.imu,
         BackendConfig(),
     )
@@ -98,22 +98,22 @@ def test_moving_start_alignment_on_simulated_flight(seed):
     assert _angle_deg(res.gravity_vo_m_s2, gravity_vo_true) < 1.5
     assert abs(res.gravity_norm_unconstrained_m_s2 - 9.81) < 0.2
     t_s = np.array([(k.t_ns - 1_000_000_000) * 1e-9 for k in kfs])
-    v_true = world.trajectory.velocity(t_s) @ rot_vo_from_world.T
+    v_true = world.trajectory.sample(t_s).velocities_m_s @ rot_vo_from_world.T
     speed = np.linalg.norm(v_true, axis=1)
     assert speed.min() > 0.3  # really a moving start
     assert np.linalg.norm(res.velocities_vo_m_s - v_true, axis=1).max() < 0.05
-    assert np.abs(res.bias_gyro_rad_s - world.imu.bias_gyro_rad_s[0]).max() < 0.005
+    assert np.abs(res.bias_gyro_rad_s - world.imu.gyro_bias_rad_s[0]).max() < 0.005
 
 
 def test_backend_still_start_on_real_euroc_imu(euroc):
     """The whole back end on the real stream: keyframes carry ground-truth poses as 'VO' (in the
     gravity-aligned Vicon frame) and no observations; it must initialise from the still start."""
-    from slam.backend.sim import pinhole_euroc_calibration
+    from datasets.rigs import euroc_like_calibration
     from slam.backend.smoother import VioBackend
     from slam.messages import ImuSample, Keyframe
 
     imu, gt = euroc
-    calib = pinhole_euroc_calibration()
+    calib = euroc_like_calibration(distortion=False)
     backend = VioBackend(calib, BackendConfig(still_init_method="align"))
     t_imu = imu[:, 0].astype(np.int64)
     j = 0

@@ -12,8 +12,9 @@ from mcap.writer import CompressionType, Writer
 from datasets import cdr
 from datasets.mcap_io import McapSequence, ros2_msgdef, write_sequence_mcap
 from datasets.mcap_scan import scan_mcap
-from datasets.memory import random_sequence, small_rig_calibration
+from datasets.memory import random_sequence
 from datasets.open import open_sequence
+from datasets.rigs import small_rig_calibration
 from slam.errors import InputError
 from tools.cli import main as slam_main
 

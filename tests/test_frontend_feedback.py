@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from datasets.synth.generator import euroc_like_calibration
+from datasets.rigs import euroc_like_calibration
 from slam.config import FrontendConfig
 from slam.frontend.tracker import FrontEnd
 from slam.geometry import make_transform, nearest_rigid, so3_exp

@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from datasets.synth.generator import euroc_like_calibration
-from slam.evaluation.align import umeyama
+from datasets.rigs import euroc_like_calibration
+from slam.evaluation.align import ate_se3_rmse_m
 from slam.geometry import invert_transform, make_transform, so3_exp
 from slam.loop.closer import odometry_sigmas
 from slam.loop.config import LoopClosureConfig
@@ -23,11 +23,6 @@ from slam.posegraph import PoseEdge, information_from_sigmas
 NUM_KF = 48
 KF_DT_NS = 500_000_000
 TRACK_KF = 3  # the simulated front end re-detects a point every 3 keyframes (new id)
-
-
-def _ate_m(est: np.ndarray, ref: np.ndarray) -> float:
-    rot, trans, _ = umeyama(est, ref, False)
-    return float(np.sqrt(np.mean(np.sum((est @ rot.T + trans - ref) ** 2, axis=1))))
 
 
 @pytest.fixture(scope="module")
@@ -96,10 +91,10 @@ def loop_world():
 def test_fusing_loop_landmarks_removes_drift(loop_world) -> None:
     calib, obs, true, odom, edges, pairs, t_ns = loop_world
     poses = {k: odom[k] for k in range(len(odom))}
-    before = _ate_m(odom[:, :3, 3], true[:, :3, 3])
+    before = ate_se3_rmse_m(odom[:, :3, 3], true[:, :3, 3])
     res = global_bundle_adjustment(calib, obs, poses, edges, pairs, 0, t_ns, GlobalBaParams())
     assert res is not None
-    after = _ate_m(np.array([res.world_from_body[k][:3, 3] for k in poses]), true[:, :3, 3])
+    after = ate_se3_rmse_m(np.array([res.world_from_body[k][:3, 3] for k in poses]), true[:, :3, 3])
     assert before > 0.03
     assert after < 0.01, (before, after, res.summary())
     assert res.fused_landmarks > 50
@@ -111,7 +106,9 @@ def test_fusing_loop_landmarks_removes_drift(loop_world) -> None:
         calib, obs, poses, edges, [], 0, t_ns, GlobalBaParams(min_observations=0)
     )
     assert free is not None
-    free_ate = _ate_m(np.array([free.world_from_body[k][:3, 3] for k in poses]), true[:, :3, 3])
+    free_ate = ate_se3_rmse_m(
+        np.array([free.world_from_body[k][:3, 3] for k in poses]), true[:, :3, 3]
+    )
     assert free_ate > 5 * after, (free_ate, after)
 
 

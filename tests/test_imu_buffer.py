@@ -6,7 +6,7 @@ from slam.messages import ImuSample
 
 def _fill(buf: ImuBuffer, n: int, gyro=(0.0, 0.0, 1.0), accel=(0.0, 0.0, 9.81)) -> None:
     for i in range(n):
-        buf.append(ImuSample(i * 5_000_000, np.array(gyro), np.array(accel)))
+        buf.add(ImuSample(i * 5_000_000, np.array(gyro), np.array(accel)))
 
 
 def test_window_covers_the_interval_and_old_samples_are_trimmed():
@@ -15,8 +15,8 @@ def test_window_covers_the_interval_and_old_samples_are_trimmed():
     w = buf.window(4_000_000_000, 4_050_000_000)
     assert w[0].t_ns <= 4_000_000_000 and w[-1].t_ns >= 4_050_000_000
     assert len(buf.window(0, 100_000_000)) <= 2  # forgotten: older than keep_ns x 2
-    buf.append(ImuSample(10, np.zeros(3), np.zeros(3)))  # out of order: ignored
-    buf.append(ImuSample(5_000_000_000, np.full(3, np.nan), np.zeros(3)))  # NaN: ignored
+    buf.add(ImuSample(10, np.zeros(3), np.zeros(3)))  # out of order: ignored
+    buf.add(ImuSample(5_000_000_000, np.full(3, np.nan), np.zeros(3)))  # NaN: ignored
     assert buf.window(4_990_000_000, 5_000_000_000)[-1].t_ns == 4_995_000_000
 
 

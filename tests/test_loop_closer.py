@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from slam.evaluation.align import umeyama
+from datasets.synth.keyframes import Drift, SyntheticKeyframe, ground_truth_keyframes
+from slam.evaluation.align import ate_se3_rmse_m
 from slam.geometry import invert_transform, make_transform, rotation_angle_rad, so3_exp
 from slam.loop.closer import LoopCloser, loop_closed_poses
 from slam.loop.config import LoopClosureConfig
-from slam.loop.synthetic import Drift, SyntheticKeyframe, ground_truth_keyframes
 from slam.loop.vocabulary import Vocabulary, load_default_vocabulary
 from slam.messages import LoopCorrection
 
@@ -21,8 +21,7 @@ def ate_m(poses: list[np.ndarray], truth: list[np.ndarray]) -> float:
     """RMSE of positions after a rigid (SE3) alignment."""
     est = np.array([p[:3, 3] for p in poses])
     ref = np.array([p[:3, 3] for p in truth])
-    rot, trans, _ = umeyama(est, ref, False)
-    return float(np.sqrt(np.mean(np.sum((est @ rot.T + trans - ref) ** 2, axis=1))))
+    return ate_se3_rmse_m(est, ref)
 
 
 @pytest.fixture(scope="module")

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from datasets.synth.keyframes import Drift, ground_truth_keyframes
 from slam.geometry import invert_transform, so3_log
 from slam.loop.closer import LoopCloser
 from slam.loop.relocaliser import Relocaliser
-from slam.loop.synthetic import Drift, ground_truth_keyframes
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from datasets.synth.generator import euroc_like_calibration
+from datasets.rigs import euroc_like_calibration
 from datasets.synth.render import CameraRenderer, StereoRenderer, pixel_rays
 from datasets.synth.scene import Scene, build_scene
 from datasets.synth.trajectories import NOMINAL_FROM_BODY

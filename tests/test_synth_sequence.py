@@ -8,8 +8,8 @@ import pytest
 from conftest import require
 
 from datasets.euroc import read_trajectory_file
+from datasets.rigs import euroc_like_calibration
 from datasets.synth import make_synthetic_sequence
-from datasets.synth.generator import euroc_like_calibration
 from datasets.synth.trajectories import PROFILES, make_profile
 from slam.errors import InputError
 from slam.geometry import matrix_to_quat_wxyz

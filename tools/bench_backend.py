@@ -2,7 +2,7 @@
 
 Run: ``.venv/bin/python -m tools.bench_backend [--duration 60] [--seed 0] [--set lag_s=1.5]``
 
-The world (``slam.backend.sim``): a 10 Hz keyframe stream of ~150 tracked landmarks (0.5 px
+The world (``datasets.synth.vio_world``): a 10 Hz keyframe stream of ~150 tracked landmarks (0.5 px
 noise, stereo) on the walls of a 12 m room, EuRoC-grade simulated IMU at 200 Hz, starting in
 motion. Reports the per-keyframe ``add_keyframe`` wall time and this thread's CPU time (p50,
 p99; wall time suffers from other processes on a shared machine, CPU time less so), ATE RMSE
@@ -47,9 +47,10 @@ def run_benchmark(
     duration_s: float, seed: int, landmarks: int, overrides: dict[str, Any], progress: bool = True
 ) -> dict[str, Any]:
     """Run the back end over one simulated world; returns the figures as a dict."""
+    from datasets.synth.vio_world import generate_world
     from slam.backend.config import BackendConfig
-    from slam.backend.sim import ate_se3_rmse, generate_world
     from slam.backend.smoother import VioBackend
+    from slam.evaluation.align import ate_se3_rmse_m
     from slam.messages import ImuSample
 
     t0 = time.perf_counter()
@@ -92,7 +93,7 @@ def run_benchmark(
         "update_wall_ms_p99": float(np.percentile(wall, 99)),
         "update_cpu_ms_p50": float(np.median(cpu)),
         "update_cpu_ms_p99": float(np.percentile(cpu, 99)),
-        "ate_se3_rmse_m": ate_se3_rmse(np.asarray(est), np.asarray(gt)),
+        "ate_se3_rmse_m": ate_se3_rmse_m(np.asarray(est), np.asarray(gt)),
         "path_length_m": float(np.linalg.norm(np.diff(np.asarray(gt), axis=0), axis=1).sum()),
         "factors_max_first_half": int(counts[:half].max()),
         "factors_max_second_half": int(counts[half:].max()),
@@ -104,10 +105,10 @@ def run_benchmark(
         "landmarks_culled": st.landmarks_culled,
         "observations_gated": st.observations_gated,
         "bias_gyro_error_rad_s": float(
-            np.abs(final.bias_gyro_rad_s - world.imu.bias_gyro_rad_s[-1]).max()
+            np.abs(final.bias_gyro_rad_s - world.imu.gyro_bias_rad_s[-1]).max()
         ),
         "bias_accel_error_m_s2": float(
-            np.abs(final.bias_accel_m_s2 - world.imu.bias_accel_m_s2[-1]).max()
+            np.abs(final.bias_accel_m_s2 - world.imu.accel_bias_m_s2[-1]).max()
         ),
         "world_generation_s": gen_s,
         "real_time_factor": duration_s / run_s,

@@ -20,13 +20,6 @@ from typing import Any
 import numpy as np
 
 
-def _ate(est: np.ndarray, ref: np.ndarray) -> float:
-    from slam.evaluation.align import umeyama
-
-    rot, trans, _ = umeyama(est, ref, False)
-    return float(np.sqrt(np.mean(np.sum((est @ rot.T + trans - ref) ** 2, axis=1))))
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--duration", type=float, default=90.0, help="seconds of the loop profile")
@@ -40,13 +33,14 @@ def main(argv: list[str] | None = None) -> int:
     from tqdm import tqdm
 
     from datasets.synth import make_synthetic_sequence
+    from datasets.synth.keyframes import Drift
     from slam.config import FrontendConfig
+    from slam.evaluation.align import ate_se3_rmse_m
     from slam.frontend.tracker import FrontEnd
     from slam.geometry import invert_transform
     from slam.loop.closer import LoopCloser, loop_closed_poses
     from slam.loop.database import LoopDetector
     from slam.loop.relocaliser import Relocaliser
-    from slam.loop.synthetic import Drift
 
     seq = make_synthetic_sequence(
         profile="loop", duration_s=args.duration, seed=args.seed, aliasing=args.aliasing
@@ -86,8 +80,8 @@ def main(argv: list[str] | None = None) -> int:
     closed = loop_closed_poses(
         t_ns, seg, odom, np.array(kf_t), np.array(kf_seg), np.array([corr[k] for k in kf_ids])
     )
-    ate_off = _ate(odom[:, :3, 3], truth[:, :3, 3])
-    ate_on = _ate(closed[:, :3, 3], truth[:, :3, 3])
+    ate_off = ate_se3_rmse_m(odom[:, :3, 3], truth[:, :3, 3])
+    ate_on = ate_se3_rmse_m(closed[:, :3, 3], truth[:, :3, 3])
     true_kf = {k: seq.world_from_body_at(int(t)) for k, t in zip(kf_ids, kf_t, strict=True)}
     false_loops = 0
     for rec in closer.loops:

@@ -42,17 +42,11 @@ def _rel_error(measured: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(d[:3, 3])), float(np.degrees(rotation_angle_rad(d[:3, :3])))
 
 
-def _ate(est: np.ndarray, ref: np.ndarray) -> float:
-    from slam.evaluation.align import umeyama
-
-    rot, trans, _ = umeyama(est, ref, False)
-    return float(np.sqrt(np.mean(np.sum((est @ rot.T + trans - ref) ** 2, axis=1))))
-
-
 def analyse(run_dir: Path, seq_path: Path) -> dict[str, Any]:
     """The diagnostics above as a dict (see the module docstring)."""
     from datasets.open import open_sequence
     from slam.errors import SlamError
+    from slam.evaluation.align import ate_se3_rmse_m
     from slam.geometry import invert_transform
     from slam.loop.closer import odometry_sigmas
     from slam.loop.config import LoopClosureConfig
@@ -143,8 +137,8 @@ def analyse(run_dir: Path, seq_path: Path) -> dict[str, Any]:
         "normalised_rms_t": float(np.sqrt(np.mean(np.square(norm_t)))) if norm_t else None,
         "normalised_rms_r": float(np.sqrt(np.mean(np.square(norm_r)))) if norm_r else None,
     }
-    out["keyframe_ate_odometry_m"] = _ate(odom[:, :3, 3], true[:, :3, 3])
-    out["keyframe_ate_corrected_m"] = _ate(corr[:, :3, 3], true[:, :3, 3])
+    out["keyframe_ate_odometry_m"] = ate_se3_rmse_m(odom[:, :3, 3], true[:, :3, 3])
+    out["keyframe_ate_corrected_m"] = ate_se3_rmse_m(corr[:, :3, 3], true[:, :3, 3])
     return out
 
 

@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from datasets.mcap_io import McapSequence, write_sequence_mcap
-from datasets.memory import small_rig_calibration, textured_image
+from datasets.memory import textured_image
+from datasets.rigs import small_rig_calibration
 from datasets.sequence import ImuArrays, Sequence
 from slam.messages import StereoFrame
 

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from datasets.rigs import FRAME_RATE_HZ, euroc_like_calibration
 from datasets.sequence import ImuArrays, Sequence
 from datasets.synth.imu_sim import read_imu_csv, simulate_imu
 from datasets.synth.render import StereoRenderer
@@ -30,56 +31,13 @@ from datasets.synth.trajectories import (
 )
 from slam.calibration import (
     Calibration,
-    CameraCalibration,
-    CameraIntrinsics,
     ImuCalibration,
 )
 from slam.errors import InputError
 from slam.messages import StereoFrame
 from slam.trajectory import Trajectory
 
-FRAME_RATE_HZ = 20.0
-IMU_RATE_HZ = 200.0
 PREFETCH_FRAMES = 2  # frames rendered ahead by iter_frames()
-
-# EuRoC MAV cam0/cam1 (VI-Sensor, MT9M034) as in the dataset's sensor.yaml files
-_EUROC_BODY_FROM_CAM0 = np.array(
-    [
-        [0.0148655429818, -0.999880929698, 0.00414029679422, -0.0216401454975],
-        [0.999557249008, 0.0149672133247, 0.025715529948, -0.064676986768],
-        [-0.0257744366974, 0.00375618835797, 0.999660727178, 0.00981073058949],
-        [0.0, 0.0, 0.0, 1.0],
-    ]
-)
-_EUROC_BODY_FROM_CAM1 = np.array(
-    [
-        [0.0125552670891, -0.999755099723, 0.0182237714554, -0.0198435579556],
-        [0.999598781151, 0.0130119051815, 0.0251588363115, 0.0453689425024],
-        [-0.0253898008918, 0.0179005838253, 0.999517347078, 0.00786212447038],
-        [0.0, 0.0, 0.0, 1.0],
-    ]
-)
-
-
-def euroc_like_calibration(imu: ImuCalibration | None = None) -> Calibration:
-    """Stereo 752x480 at 20 Hz with EuRoC's intrinsics, radtan distortion and extrinsics
-    (baseline 0.110 m), IMU at 200 Hz with the ADIS16448 noise figures."""
-    cam0 = CameraIntrinsics(
-        752, 480, 458.654, 457.296, 367.215, 248.375, "radtan",
-        (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05),
-    )  # fmt: skip
-    cam1 = CameraIntrinsics(
-        752, 480, 457.587, 456.134, 379.999, 255.238, "radtan",
-        (-0.28368365, 0.07451284, -0.00010473, -3.55590700e-05),
-    )  # fmt: skip
-    return Calibration(
-        cameras=(
-            CameraCalibration("cam0", cam0, _EUROC_BODY_FROM_CAM0.copy(), FRAME_RATE_HZ),
-            CameraCalibration("cam1", cam1, _EUROC_BODY_FROM_CAM1.copy(), FRAME_RATE_HZ),
-        ),
-        imu=imu or ImuCalibration(rate_hz=IMU_RATE_HZ),
-        time_offset_ns=0,
-    )
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""IMU preintegration helpers and the sanitised IMU buffer of the back end.
+"""IMU preintegration helpers and the back end's IMU buffer (a ``slam.imu_buffer.ImuBuffer``).
 
 Preintegration uses GTSAM's ``PreintegratedCombinedMeasurements`` (navigation frame z up,
 gravity ``-g z``). Noise densities are Kalibr's continuous-time ones; GTSAM takes continuous-time
@@ -13,17 +13,12 @@ thus split exactly at the keyframe times.
 
 from __future__ import annotations
 
-import logging
-from dataclasses import dataclass, field
-
 import gtsam
 import numpy as np
 
 from slam.backend.config import BackendConfig
 from slam.calibration import ImuCalibration
-from slam.messages import ImuSample
-
-log = logging.getLogger(__name__)
+from slam.imu_buffer import ImuBuffer
 
 
 def preintegration_params(imu: ImuCalibration) -> gtsam.PreintegrationCombinedParams:
@@ -90,160 +85,33 @@ def integrate_pieces(
             pim.integrateMeasurement(accel[k], gyro[k], float(dt_s[k]))
 
 
-@dataclass
-class ImuStats:
-    """Counters of IMU data problems (all samples are counted once)."""
-
-    accepted: int = 0
-    rejected_nonfinite: int = 0
-    rejected_saturated: int = 0
-    rejected_out_of_order: int = 0
-    gaps_warned: int = 0
-    intervals_without_imu: int = 0  # keyframe intervals that got no IMU factor
-    messages: list[str] = field(default_factory=list)
-
-    @property
-    def rejected(self) -> int:
-        return self.rejected_nonfinite + self.rejected_saturated + self.rejected_out_of_order
+def backend_imu_buffer(imu: ImuCalibration, config: BackendConfig) -> ImuBuffer:
+    """The back end's IMU store: kept until trimmed, saturated samples rejected, gaps longer
+    than ``imu_gap_warn_factor`` nominal periods counted, every problem logged."""
+    nominal_dt_ns = int(round(1e9 / imu.rate_hz))
+    return ImuBuffer(
+        keep_ns=None,
+        max_gyro_rad_s=config.max_gyro_rad_s,
+        max_accel_m_s2=config.max_accel_m_s2,
+        gap_warn_ns=config.imu_gap_warn_factor * nominal_dt_ns,
+        log_problems=True,
+    )
 
 
-class ImuBuffer:
-    """Sanitised IMU history: rejects NaN/inf, saturated and out-of-order samples, warns on gaps."""
-
-    _WARN_EVERY = 100  # after the first warning of a kind, log every this many occurrences
-
-    def __init__(self, imu: ImuCalibration, config: BackendConfig) -> None:
-        self.imu = imu
-        self.config = config
-        self.stats = ImuStats()
-        self._nominal_dt_ns = int(round(1e9 / imu.rate_hz))
-        self._t: list[int] = []
-        self._gyro: list[np.ndarray] = []
-        self._accel: list[np.ndarray] = []
-        self._cache: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-
-    def __len__(self) -> int:
-        return len(self._t)
-
-    def _warn(self, kind: str, count: int, text: str) -> None:
-        if count == 1 or count % self._WARN_EVERY == 0:
-            msg = f"IMU: {text} ({kind} count {count})"
-            log.warning(msg)
-            if len(self.stats.messages) < 50:
-                self.stats.messages.append(msg)
-
-    def add(self, sample: ImuSample) -> bool:
-        """Append one sample; returns False (and counts/warns) when it is rejected."""
-        gyro = np.asarray(sample.gyro_rad_s, dtype=float).reshape(3)
-        accel = np.asarray(sample.accel_m_s2, dtype=float).reshape(3)
-        s = self.stats
-        if not (np.all(np.isfinite(gyro)) and np.all(np.isfinite(accel))):
-            s.rejected_nonfinite += 1
-            self._warn("nonfinite", s.rejected_nonfinite, f"non-finite sample at t={sample.t_ns}")
-            return False
-        if (
-            np.abs(accel).max() > self.config.max_accel_m_s2
-            or np.abs(gyro).max() > self.config.max_gyro_rad_s
-        ):
-            s.rejected_saturated += 1
-            self._warn("saturated", s.rejected_saturated, f"saturated sample at t={sample.t_ns}")
-            return False
-        if self._t and sample.t_ns <= self._t[-1]:
-            s.rejected_out_of_order += 1
-            self._warn(
-                "out_of_order", s.rejected_out_of_order, f"non-increasing time t={sample.t_ns}"
-            )
-            return False
-        if self._t:
-            gap_ns = sample.t_ns - self._t[-1]
-            if gap_ns > self.config.imu_gap_warn_factor * self._nominal_dt_ns:
-                s.gaps_warned += 1
-                self._warn(
-                    "gap", s.gaps_warned, f"gap of {gap_ns * 1e-9:.3f} s before t={sample.t_ns}"
-                )
-        self._t.append(int(sample.t_ns))
-        self._gyro.append(gyro)
-        self._accel.append(accel)
-        self._cache = None
-        s.accepted += 1
-        return True
-
-    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(t_ns (N,), gyro (N, 3), accel (N, 3)) of the accepted samples."""
-        if self._cache is None:
-            if not self._t:
-                self._cache = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
-            else:
-                self._cache = (
-                    np.asarray(self._t, dtype=np.int64),
-                    np.asarray(self._gyro),
-                    np.asarray(self._accel),
-                )
-        return self._cache
-
-    def window(self, t0_ns: int, t1_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Accepted samples with t0_ns <= t <= t1_ns."""
-        t, g, a = self.arrays()
-        m = (t >= t0_ns) & (t <= t1_ns)
-        return t[m], g[m], a[m]
-
-    def pieces(self, t0_ns: int, t1_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """Integration pieces over [t0_ns, t1_ns], or None when the IMU does not cover it."""
-        t, g, a = self.arrays()
-        return integration_pieces(t, g, a, t0_ns, t1_ns, self.config.imu_gap_max_s)
-
-    def preintegrate(
-        self,
-        params: gtsam.PreintegrationCombinedParams,
-        bias: gtsam.imuBias.ConstantBias,
-        t0_ns: int,
-        t1_ns: int,
-    ) -> gtsam.PreintegratedCombinedMeasurements | None:
-        """Preintegrated measurements between two keyframe times, or None (no IMU factor)."""
-        pieces = self.pieces(t0_ns, t1_ns)
-        if pieces is None:
-            return None
-        pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
-        integrate_pieces(pim, pieces)
-        return pim
-
-    def trim(self, before_ns: int) -> None:
-        """Drop samples older than ``before_ns`` except the last one before it (for bracketing)."""
-        t, _, _ = self.arrays()
-        k = int(np.searchsorted(t, before_ns, side="right")) - 1
-        if k > 0:
-            del self._t[:k], self._gyro[:k], self._accel[:k]
-            self._cache = None
-
-
-def propagate_state(
-    world_from_body: np.ndarray,
-    velocity_world_m_s: np.ndarray,
-    bias_gyro_rad_s: np.ndarray,
-    bias_accel_m_s2: np.ndarray,
+def preintegrate(
+    buffer: ImuBuffer,
+    params: gtsam.PreintegrationCombinedParams,
+    bias: gtsam.imuBias.ConstantBias,
     t0_ns: int,
     t1_ns: int,
-    imu_t_ns: np.ndarray,
-    imu_gyro_rad_s: np.ndarray,
-    imu_accel_m_s2: np.ndarray,
-    params: gtsam.PreintegrationCombinedParams,
-    max_gap_s: float = 0.1,
-) -> tuple[np.ndarray, np.ndarray] | None:
-    """IMU-propagate a state (e.g. the latest ``Estimate``) from t0 to t1 in a z-up world.
-
-    Returns (world_from_body 4x4, velocity) at t1, or None when the IMU does not cover
-    [t0, t1]. For per-frame poses and pose priors in the front end (never waits on the back end).
-    """
-    if t1_ns == t0_ns:
-        return np.asarray(world_from_body, float).copy(), np.asarray(velocity_world_m_s, float)
-    pieces = integration_pieces(imu_t_ns, imu_gyro_rad_s, imu_accel_m_s2, t0_ns, t1_ns, max_gap_s)
+    max_gap_s: float,
+) -> gtsam.PreintegratedCombinedMeasurements | None:
+    """Preintegrated measurements between two keyframe times, or None (no IMU factor) when the
+    buffer does not cover [t0_ns, t1_ns] or a gap in it is longer than ``max_gap_s``."""
+    t, g, a = buffer.arrays()
+    pieces = integration_pieces(t, g, a, t0_ns, t1_ns, max_gap_s)
     if pieces is None:
         return None
-    bias = make_bias(bias_gyro_rad_s, bias_accel_m_s2)
     pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
     integrate_pieces(pim, pieces)
-    state = gtsam.NavState(
-        gtsam.Pose3(np.asarray(world_from_body, float)), np.asarray(velocity_world_m_s, float)
-    )
-    pred = pim.predict(state, bias)
-    return pred.pose().matrix(), np.asarray(pred.velocity(), float)
+    return pim

@@ -34,7 +34,12 @@ import gtsam
 import numpy as np
 
 from slam.backend.config import BackendConfig
-from slam.backend.imu import ImuBuffer, make_bias, preintegration_params
+from slam.backend.imu import (
+    backend_imu_buffer,
+    make_bias,
+    preintegrate,
+    preintegration_params,
+)
 from slam.backend.init import (
     MovingInitResult,
     is_still,
@@ -131,7 +136,7 @@ class VioBackend:
         self.calibration = calibration
         self.config = config or BackendConfig()
         self.imu_calibration = calibration.imu
-        self.imu = ImuBuffer(calibration.imu, self.config)
+        self.imu = backend_imu_buffer(calibration.imu, self.config)
         self.stats = BackendStats()
         self._params = preintegration_params(calibration.imu)
         cams = calibration.cameras[:2]
@@ -276,7 +281,7 @@ class VioBackend:
         self._init_keyframes.append(kf)
         self.imu.trim(self._init_keyframes[0].t_ns - int(2 * cfg.still_window_s * 1e9))
         if cfg.init_mode in ("auto", "still"):
-            t, g, a = self.imu.window(kf.t_ns - int(cfg.still_window_s * 1e9), kf.t_ns)
+            t, g, a = self.imu.arrays_between(kf.t_ns - int(cfg.still_window_s * 1e9), kf.t_ns)
             rate = self.imu_calibration.rate_hz
             if len(t) >= 0.9 * cfg.still_window_s * rate and is_still(g, a, cfg, rate):
                 if cfg.still_init_method == "kalman":
@@ -441,7 +446,7 @@ class VioBackend:
         prev_bias = vals.atConstantBias(B(prev.k))
         graph = gtsam.NonlinearFactorGraph()
         new_values = gtsam.Values()
-        pim = self.imu.preintegrate(self._params, prev_bias, prev.t_ns, kf.t_ns)
+        pim = preintegrate(self.imu, self._params, prev_bias, prev.t_ns, kf.t_ns, cfg.imu_gap_max_s)
         if pim is not None:
             pred = pim.predict(gtsam.NavState(prev_pose, prev_vel), prev_bias)
             pose_guess, vel_guess = pred.pose(), pred.velocity()

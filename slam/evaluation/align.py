@@ -72,6 +72,14 @@ def umeyama(x: np.ndarray, y: np.ndarray, with_scale: bool) -> tuple[np.ndarray,
     return r, t, float(c)
 
 
+def ate_se3_rmse_m(est_positions_m: np.ndarray, ref_positions_m: np.ndarray) -> float:
+    """Position RMSE (m) after the SE(3) Umeyama alignment of the estimate to the reference:
+    the ATE of (N, 3) positions already associated (tests, benchmarks)."""
+    rot, trans, _ = umeyama(est_positions_m, ref_positions_m, False)
+    err = est_positions_m @ rot.T + trans - ref_positions_m
+    return float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
+
+
 def posyaw(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Yaw rotation R_z and t minimising ||y - (R_z x + t)||^2 (closed form)."""
     xc, yc = x - x.mean(axis=0), y - y.mean(axis=0)
