@@ -495,6 +495,7 @@ def run_slam(
             if s is not viewer:
                 s.close()
                 s.join()
+        frontend.finish()  # a back-end initialisation published after the last frame
         if bar is not None:
             bar.close()
         traj, kfs, _ = recorder.snapshot()

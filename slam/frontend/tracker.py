@@ -158,6 +158,26 @@ class FrontEnd:
             self.prev_world_from_body = correction @ self.prev_world_from_body
         self.last_known_pose = correction @ self.last_known_pose
 
+    def finish(self) -> None:
+        """End of the run, called once the back end has published its last estimate.
+
+        The change of frame into the back end's world is applied by :meth:`process`, at the
+        first frame after the first initialised estimate. A back end that falls behind (its
+        worker starved of CPU) can publish that estimate only after our last frame: without
+        this, the recorded trajectory stayed in the VO frame while the back end's keyframes
+        were gravity aligned. The change of frame is then taken from the latest estimate, as
+        the next frame would have. Nothing happens once the frame was changed: corrections
+        after the last frame do not rewrite the (causal) online trajectory.
+        """
+        if self.reframed:
+            return
+        self._apply_estimate()
+        est = self.latest_estimate
+        if self.reframed and est is not None:
+            self.stats.state_log.append(
+                (est.t_ns, "back end's world adopted after the last frame (late initialisation)")
+            )
+
     # ------------------------------------------------------------------ helpers
     def _undistorted_px(self, px: np.ndarray) -> np.ndarray:
         norm = self.cam0.undistort_points(px)
