@@ -131,6 +131,42 @@ def _vo_frontend(estimate_slot: list[Estimate | None], recorder: _Recorded) -> F
     return fe
 
 
+def test_first_initialised_estimate_arriving_while_lost_still_changes_the_frame():
+    """The back end's first initialised estimate is read while the front end is lost (between
+    its loss and the restart of tracking). Before: marked applied without the change of frame,
+    yet adopted as the IMU prior, so tracking restarted at a gravity-world pose while the
+    recorded poses and stored keyframe poses stayed in the VO frame."""
+    slot: list[Estimate | None] = [None]
+    recorder = _Recorded()
+    fe = _vo_frontend(slot, recorder)
+    fe.mapped = False  # lost: landmarks and current pose dropped, last known pose kept
+    fe.world_from_body = None
+    vo_kf_poses = {kid: p.copy() for kid, p in fe.kf_poses.items()}
+    vo_recorded = [p.copy() for _, p in recorder.poses]
+    vo_last_known = fe.last_known_pose.copy()
+    world_from_vo = make_transform(so3_exp(np.array([1.2, 0.3, -0.4])), np.array([0.1, 0.2, 0.3]))
+    slot[0] = Estimate.pose_only(10, 1, world_from_vo @ vo_kf_poses[1], initialized=True)
+    fe._apply_estimate()
+    assert fe.reframed
+    assert fe.latest_estimate is slot[0]  # the IMU prior's frame is now the front end's
+    np.testing.assert_allclose(fe.last_known_pose, world_from_vo @ vo_last_known, atol=1e-9)
+    for kid, pose in vo_kf_poses.items():
+        np.testing.assert_allclose(fe.kf_poses[kid], world_from_vo @ pose, atol=1e-9)
+    for (_, pose), vo in zip(recorder.poses, vo_recorded, strict=True):
+        np.testing.assert_allclose(pose, world_from_vo @ vo, atol=1e-9)
+
+
+def test_first_initialised_estimate_of_an_unknown_keyframe_is_not_adopted():
+    """Without our pose of its keyframe there is no change of frame to apply: the estimate
+    must not become the IMU prior either (its poses are in a frame we are not in)."""
+    slot: list[Estimate | None] = [None]
+    recorder = _Recorded()
+    fe = _vo_frontend(slot, recorder)
+    slot[0] = Estimate.pose_only(10, 7, np.eye(4), initialized=True)
+    fe._apply_estimate()
+    assert not fe.reframed and fe.latest_estimate is None
+
+
 def test_finish_applies_a_change_of_frame_published_after_the_last_frame():
     """The ordering of the first test, on the front end alone: only uninitialised estimates
     while frames come, the first initialised one after the last frame, then ``finish``."""
