@@ -276,11 +276,12 @@ class LoopInput:
     refreshed: dict[int, np.ndarray]  # keyframe id -> newer odometry world_from_body
 
 
-@dataclass(frozen=True)
-class LoopUnsmoothed:
-    """Keyframes from before the back end's initialisation (left out of the global adjustment)."""
+@dataclass(frozen=True, eq=False)
+class LoopEnd:
+    """Sent to the loop closer after its last keyframe, before its final adjustment."""
 
-    keyframe_ids: frozenset[int]
+    unsmoothed_ids: frozenset[int]  # before the back end's initialisation: left out of it
+    refreshed: dict[int, np.ndarray]  # keyframe id -> last odometry world_from_body
 
 
 @dataclass(frozen=True, eq=False)

@@ -131,14 +131,23 @@ class FrontEnd:
         key = (est.keyframe_id, est.map_generation)
         if key == self.applied_estimate:
             return
+        fe_pose = self.kf_poses.get(est.keyframe_id)
+        if not self.reframed:
+            # The first initialised estimate is in the back end's gravity-aligned world; we are
+            # in the VO frame until its change of frame is applied, which needs our pose of its
+            # keyframe (tracking or not). Until then nothing of it is adopted: as the IMU prior
+            # it restarted tracking after a loss at a world pose among VO-frame poses.
+            if fe_pose is None:
+                return
+            if not self._rigid_estimate(est, fe_pose):
+                self.applied_estimate = key
+                return
         self.applied_estimate = key
         self.latest_estimate = est
         self.bias_gyro = np.asarray(est.bias_gyro_rad_s, dtype=float)
-        fe_pose = self.kf_poses.get(est.keyframe_id)
-        if fe_pose is None or not self.mapped:
+        if fe_pose is None or (self.reframed and not self.mapped):
             return
-        if not (is_rigid(est.world_from_body, tol=1e-3) and np.isfinite(fe_pose).all()):
-            self.stats.state_log.append((est.t_ns, "back-end estimate ignored: not a rigid pose"))
+        if not self._rigid_estimate(est, fe_pose):
             return
         correction = nearest_rigid(est.world_from_body @ invert_transform(fe_pose))
         self.stats.estimate_corrections += 1
@@ -160,6 +169,32 @@ class FrontEnd:
         if self.prev_world_from_body is not None:
             self.prev_world_from_body = correction @ self.prev_world_from_body
         self.last_known_pose = correction @ self.last_known_pose
+
+    def _rigid_estimate(self, est: Estimate, fe_pose: np.ndarray) -> bool:
+        if is_rigid(est.world_from_body, tol=1e-3) and np.isfinite(fe_pose).all():
+            return True
+        self.stats.state_log.append((est.t_ns, "back-end estimate ignored: not a rigid pose"))
+        return False
+
+    def finish(self) -> None:
+        """End of the run, called once the back end has published its last estimate.
+
+        The change of frame into the back end's world is applied by :meth:`process`, at the
+        first frame after the first initialised estimate. A back end that falls behind (its
+        worker starved of CPU) can publish that estimate only after our last frame: without
+        this, the recorded trajectory stayed in the VO frame while the back end's keyframes
+        were gravity aligned. The change of frame is then taken from the latest estimate, as
+        the next frame would have. Nothing happens once the frame was changed: corrections
+        after the last frame do not rewrite the (causal) online trajectory.
+        """
+        if self.reframed:
+            return
+        self._apply_estimate()
+        est = self.latest_estimate
+        if self.reframed and est is not None:
+            self.stats.state_log.append(
+                (est.t_ns, "back end's world adopted after the last frame (late initialisation)")
+            )
 
     # ------------------------------------------------------------------ helpers
     def _undistorted_px(self, px: np.ndarray) -> np.ndarray:

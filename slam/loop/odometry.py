@@ -54,8 +54,9 @@ class OdometryRefresher:
             return None
         return pose
 
-    def refreshed(self) -> dict[int, np.ndarray]:
-        """Changed poses to resend before the next keyframe (also recorded as sent)."""
+    def refreshed(self, full: bool = False) -> dict[int, np.ndarray]:
+        """Changed poses to resend before the next keyframe (also recorded as sent); ``full``:
+        sweep the old keyframes now (at the end of the run)."""
         out: dict[int, np.ndarray] = {}
         recent = self._order[-REFRESH_LAST_KEYFRAMES:]
         for kid in recent:
@@ -66,7 +67,7 @@ class OdometryRefresher:
             old = self.sent.get(kid)
             if old is None or not np.array_equal(old, pose):
                 out[kid] = self.sent[kid] = np.array(pose, dtype=float)
-        if len(self._order) % FULL_REFRESH_EVERY == 0:
+        if full or len(self._order) % FULL_REFRESH_EVERY == 0:
             # Vectorised over the old keyframes: this runs in the main process, and a Python
             # loop over hundreds of poses held the GIL for milliseconds at a time.
             old_ids = self._order[: max(len(self._order) - len(recent), 0)]

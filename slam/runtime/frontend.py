@@ -27,3 +27,10 @@ class FrontendStage(Stage):
         self.emit(result)
         if keyframe is not None:
             self.emit(keyframe)
+
+    def finish_frontend(self) -> None:
+        """After the back end has ended: a change of frame it published after the last frame
+        (:meth:`FrontEnd.finish`) still reaches the recorder and the loop closer."""
+        self.frontend.finish()
+        for correction in self.frontend.take_corrections():
+            self.emit(correction)

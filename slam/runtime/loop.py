@@ -37,10 +37,10 @@ from slam.messages import (
     BackendOutput,
     FrontendCorrection,
     Keyframe,
+    LoopEnd,
     LoopFinal,
     LoopInput,
     LoopOutput,
-    LoopUnsmoothed,
 )
 from slam.runtime.stage import Latest
 from slam.runtime.worker import ProcessStage, WorkerCore
@@ -59,8 +59,11 @@ class LoopCore(WorkerCore):
 
     def handle(self, msg: Any) -> list[Any]:
         closer = self.closer
-        if isinstance(msg, LoopUnsmoothed):
-            closer.exclude_from_adjustment = set(msg.keyframe_ids)
+        if isinstance(msg, LoopEnd):
+            for kid, pose in msg.refreshed.items():
+                if kid in closer.odom:
+                    closer.update_odometry(kid, pose)
+            closer.exclude_from_adjustment = set(msg.unsmoothed_ids)
             return []
         if not isinstance(msg, LoopInput):
             return []
@@ -234,7 +237,9 @@ class LoopClosureStage(ProcessStage):
             with self._lock:
                 kids = list(self.t_ns_of)
             unsmoothed = before_first_smoothed(kids, self.odometry.smoothed)
-            self.send(LoopUnsmoothed(frozenset(unsmoothed)))
+            # The back end's last estimates (and the front end's change of frame, when the
+            # back end initialised after the last frame) arrived after the last keyframe.
+            self.send(LoopEnd(frozenset(unsmoothed), self.refresher.refreshed(full=True)))
         self.end_worker()
 
     def smoothed(self, kid: int) -> bool:

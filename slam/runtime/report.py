@@ -194,6 +194,7 @@ def end_run(
     times.parts_s.clear()
     if p.backend is not None:
         _end_stage(p.backend, control, times)
+        p.frontend.finish_frontend()  # a back-end initialisation published after the last frame
     if p.loop is not None:
         if progress and not interrupted:
             print("loop closure: global adjustment ...", flush=True)
