@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slam.errors import InputError
+from slam.core.errors import InputError
 
 CDR_LE_HEADER = b"\x00\x01\x00\x00"  # CDR, little endian, no options
 

@@ -22,12 +22,12 @@ import numpy as np
 from datasets.kalibr import distortion_model, load_yaml
 from datasets.sequence import ImuArrays, Sequence
 from datasets.timing import find_gaps, pair_stereo, sort_dedupe
-from slam.calibration import Calibration, CameraCalibration, CameraIntrinsics, ImuCalibration
-from slam.errors import InputError
+from slam.core.calibration import Calibration, CameraCalibration, CameraIntrinsics, ImuCalibration
+from slam.core.errors import InputError
+from slam.core.geometry import invert_transform
+from slam.core.messages import StereoFrame
+from slam.core.trajectory import Trajectory
 from slam.evaluation.io import detect_format, read_trajectory
-from slam.geometry import invert_transform
-from slam.messages import StereoFrame
-from slam.trajectory import Trajectory
 
 GT_CANDIDATES = ("state_groundtruth_estimate0", "mocap0")
 

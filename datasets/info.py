@@ -11,7 +11,7 @@ from datasets.mcap_scan import ScanResult, scan_mcap
 from datasets.open import find_mcap, open_sequence
 from datasets.sequence import Sequence
 from datasets.timing import find_gaps, rate_hz
-from slam.errors import InputError
+from slam.core.errors import InputError
 
 
 def _span(t_ns: np.ndarray) -> str:

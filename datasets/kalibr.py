@@ -20,9 +20,9 @@ from typing import Any
 import numpy as np
 import yaml
 
-from slam.calibration import Calibration, CameraCalibration, CameraIntrinsics, ImuCalibration
-from slam.errors import InputError
-from slam.geometry import invert_transform
+from slam.core.calibration import Calibration, CameraCalibration, CameraIntrinsics, ImuCalibration
+from slam.core.errors import InputError
+from slam.core.geometry import invert_transform
 
 DISTORTION_ALIASES = {
     "radtan": "radtan",

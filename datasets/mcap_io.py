@@ -49,9 +49,9 @@ from datasets.ros2bag import (
     TopicSelection,
 )
 from datasets.sequence import Sequence
-from slam.atomic import atomic_output
-from slam.calibration import CameraCalibration
-from slam.messages import ImuSample, StereoFrame
+from slam.core.atomic import atomic_output
+from slam.core.calibration import CameraCalibration
+from slam.core.messages import ImuSample, StereoFrame
 
 CHUNK_SIZE_BYTES = 4 * 1024 * 1024
 CAMERA_INFO_TOPICS = ("/cam0/camera_info", "/cam1/camera_info")

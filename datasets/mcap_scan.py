@@ -29,7 +29,7 @@ import numpy as np
 from mcap.data_stream import ReadDataStream
 from mcap.records import Channel, Header, Metadata, Schema
 
-from slam.errors import InputError
+from slam.core.errors import InputError
 
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 1, 2, 3, 4, 5, 6

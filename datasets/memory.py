@@ -13,10 +13,10 @@ import numpy as np
 
 from datasets.rigs import small_rig_calibration
 from datasets.sequence import ImuArrays, Sequence
-from slam.calibration import Calibration
-from slam.geometry import matrix_to_quat_wxyz
-from slam.messages import StereoFrame
-from slam.trajectory import Trajectory
+from slam.core.calibration import Calibration
+from slam.core.geometry import matrix_to_quat_wxyz
+from slam.core.messages import StereoFrame
+from slam.core.trajectory import Trajectory
 
 
 class InMemorySequence(Sequence):

@@ -12,7 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from slam.errors import InputError
+from slam.core.errors import InputError
 
 
 @dataclass(frozen=True, eq=False)

@@ -18,7 +18,7 @@ from datasets.ros2bag import (
     TopicSelection,
 )
 from datasets.sequence import Sequence
-from slam.errors import InputError
+from slam.core.errors import InputError
 
 SUPPORTED = (
     "an MCAP file (ours, or a ROS 2 bag recorded as MCAP), a ROS 2 bag folder holding one "

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from slam.atomic import atomic_output
-from slam.errors import InputError
+from slam.core.atomic import atomic_output
+from slam.core.errors import InputError
 
 _PLY_TYPES = {
     "char": "i1",

@@ -45,8 +45,8 @@ import numpy as np
 from scipy.optimize import least_squares
 from tqdm import tqdm
 
-from slam.calibration import CameraIntrinsics
-from slam.geometry import invert_transform, so3_exp, so3_log
+from slam.core.calibration import CameraIntrinsics
+from slam.core.geometry import invert_transform, so3_exp, so3_log
 
 
 class RgbdSource(Protocol):

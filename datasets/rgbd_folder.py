@@ -16,7 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from slam.errors import InputError
+from slam.core.errors import InputError
 
 SEVEN_SCENES_K = np.array([[585.0, 0.0, 320.0], [0.0, 585.0, 240.0], [0.0, 0.0, 1.0]])
 _FRAME_RE = re.compile(r"^frame-(\d+)\.depth\.png$")

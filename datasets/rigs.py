@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from slam.calibration import Calibration, CameraCalibration, CameraIntrinsics, ImuCalibration
-from slam.geometry import make_transform
+from slam.core.calibration import Calibration, CameraCalibration, CameraIntrinsics, ImuCalibration
+from slam.core.geometry import make_transform
 
 FRAME_RATE_HZ = 20.0
 IMU_RATE_HZ = 200.0

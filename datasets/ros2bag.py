@@ -29,10 +29,10 @@ from datasets import cdr
 from datasets.mcap_scan import ChunkCache, CorruptChunk, ScanResult, scan_mcap
 from datasets.sequence import ImuArrays, Sequence
 from datasets.timing import find_gaps, pair_stereo, sort_dedupe
-from slam.calibration import Calibration
-from slam.errors import InputError
-from slam.messages import StereoFrame
-from slam.trajectory import Trajectory
+from slam.core.calibration import Calibration
+from slam.core.errors import InputError
+from slam.core.messages import StereoFrame
+from slam.core.trajectory import Trajectory
 
 CALIBRATION_METADATA = "pyvislam.calibration"
 SEQUENCE_METADATA = "pyvislam.sequence"

@@ -18,9 +18,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from slam.calibration import Calibration
-from slam.messages import ImuSample, StereoFrame
-from slam.trajectory import Trajectory
+from slam.core.calibration import Calibration
+from slam.core.messages import ImuSample, StereoFrame
+from slam.core.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 

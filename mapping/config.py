@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from slam.bounds import bounded
+from slam.core.bounds import bounded
 
 
 @dataclass(frozen=True)

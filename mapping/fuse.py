@@ -13,8 +13,8 @@ from tqdm import tqdm
 
 from mapping.mapper import DenseMapper, MapperConfig
 from mapping.mesh import TriangleMesh
-from slam.errors import InputError
-from slam.trajectory import Trajectory
+from slam.core.errors import InputError
+from slam.core.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 

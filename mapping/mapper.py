@@ -36,8 +36,8 @@ from mapping.planesweep import (
     plane_sweep,
 )
 from mapping.tsdf import TsdfConfig, TsdfVolume
-from slam.calibration import Calibration
-from slam.geometry import invert_transform, rotation_angle_rad
+from slam.core.calibration import Calibration
+from slam.core.geometry import invert_transform, rotation_angle_rad
 
 
 @dataclass(frozen=True)

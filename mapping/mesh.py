@@ -202,7 +202,7 @@ def poisson_mesh(
     try:
         import open3d as o3d
     except ImportError as exc:
-        from slam.errors import SlamError
+        from slam.core.errors import SlamError
 
         raise SlamError(
             "Poisson reconstruction needs the optional package open3d: "

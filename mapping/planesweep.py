@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from slam.calibration import CameraIntrinsics
+from slam.core.calibration import CameraIntrinsics
 
 COSTS = ("zncc", "sad")
 

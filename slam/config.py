@@ -3,7 +3,7 @@
 Loaded from a named preset or a YAML file (partial files override the preset they name with
 ``preset:``, default ``stereo-vo``/``euroc-stereo-imu``); the resolved config is saved with every
 run. Unknown keys are an error, so a typo never silently falls back to a default. Every numeric
-field has an allowed range (:func:`slam.bounds.bounded`), checked by :func:`validate_config` on
+field has an allowed range (:func:`slam.core.bounds.bounded`), checked by :func:`validate_config` on
 every loaded config before a run. This module imports config modules only, never a stage.
 """
 
@@ -22,8 +22,8 @@ import yaml
 
 from mapping.config import MapperStageConfig
 from slam.backend.config import BackendConfig
-from slam.bounds import bounded, field_bounds
-from slam.errors import SlamError
+from slam.core.bounds import bounded, field_bounds
+from slam.core.errors import SlamError
 from slam.loop.config import LoopClosureConfig
 
 _SUBPIXEL_OFF = "switch refinement off with frontend.corner_subpixel: false"
@@ -224,7 +224,7 @@ def validate_config(cfg: SlamConfig) -> SlamConfig:
     """``cfg`` itself, once every numeric field (nested configs included) is within its bounds.
 
     Each ``int``/``float`` field must hold a finite number (an integer for ``int``; never a
-    bool) inside the range in its metadata (:func:`slam.bounds.bounded`), and a field bounded by
+    bool) inside the range in its metadata (:func:`slam.core.bounds.bounded`), and a field bounded by
     another (``lt_field``/``le_field``: a minimum and its maximum) must stay below it. Raises
     :class:`SlamError` with one line naming the key path, the value and the allowed range, e.g.
     ``config key frontend.max_features must be in [1, 5000], got -5``. Runs on every loaded

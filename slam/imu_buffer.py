@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from slam.geometry import so3_exp_batch
-from slam.messages import ImuSample
+from slam.core.geometry import so3_exp_batch
+from slam.core.messages import ImuSample
 
 log = logging.getLogger(__name__)
 

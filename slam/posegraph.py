@@ -35,9 +35,9 @@ import gtsam
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
-from slam.atomic import write_atomic
-from slam.errors import InputError
-from slam.geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix
+from slam.core.atomic import write_atomic
+from slam.core.errors import InputError
+from slam.core.geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix
 
 log = logging.getLogger(__name__)
 

@@ -8,7 +8,7 @@ import pytest
 
 from datasets.synth import make_synthetic_sequence
 from slam.config import FrontendConfig, load_config
-from slam.errors import SlamError
+from slam.core.errors import SlamError
 from slam.frontend.affine_klt import TrackTemplates, build_templates, refine_affine
 from tools.bench_klt_drift import track_errors
 

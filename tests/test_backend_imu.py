@@ -18,9 +18,9 @@ from slam.backend.imu import (
     preintegrate,
     preintegration_params,
 )
-from slam.calibration import ImuCalibration
-from slam.geometry import quat_wxyz_to_matrix, so3_log
-from slam.messages import ImuSample
+from slam.core.calibration import ImuCalibration
+from slam.core.geometry import quat_wxyz_to_matrix, so3_log
+from slam.core.messages import ImuSample
 
 
 @pytest.fixture(scope="module")
@@ -132,8 +132,8 @@ def test_buffer_rejects_counts_and_warns(caplog):
 def test_dead_reckoning_follows_the_simulated_truth():
     """The front end's IMU pose prior (sample-and-hold dead reckoning) over 0.2 s of flight."""
     from datasets.synth.vio_world import generate_world
+    from slam.core.messages import ImuBatch
     from slam.imu_buffer import ImuBuffer, propagate_pose
-    from slam.messages import ImuBatch
 
     world = generate_world(duration_s=3.0, seed=1, imu_noise=False, landmarks_per_keyframe=10)
     imu = world.imu.arrays

@@ -16,8 +16,8 @@ from slam.backend.init import (
     still_init_kalman,
     world_from_vo_gravity,
 )
-from slam.calibration import ImuCalibration
-from slam.geometry import quat_wxyz_to_matrix, so3_log, transform_points
+from slam.core.calibration import ImuCalibration
+from slam.core.geometry import quat_wxyz_to_matrix, so3_log, transform_points
 
 
 @pytest.fixture(scope="module")
@@ -110,7 +110,7 @@ def test_backend_still_start_on_real_euroc_imu(euroc):
     gravity-aligned Vicon frame) and no observations; it must initialise from the still start."""
     from datasets.rigs import euroc_like_calibration
     from slam.backend.smoother import VioBackend
-    from slam.messages import ImuSample, Keyframe
+    from slam.core.messages import ImuSample, Keyframe
 
     imu, gt = euroc
     calib = euroc_like_calibration(distortion=False)

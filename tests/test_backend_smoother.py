@@ -10,8 +10,8 @@ import pytest
 from datasets.synth.vio_world import SimWorld, generate_world
 from slam.backend.config import BackendConfig
 from slam.backend.smoother import VioBackend
+from slam.core.messages import Estimate, ImuSample, Keyframe
 from slam.evaluation.align import ate_se3_rmse_m, umeyama
-from slam.messages import Estimate, ImuSample, Keyframe
 
 
 @dataclasses.dataclass

@@ -15,7 +15,7 @@ from datasets.mcap_scan import scan_mcap
 from datasets.memory import random_sequence
 from datasets.open import open_sequence
 from datasets.rigs import small_rig_calibration
-from slam.errors import InputError
+from slam.core.errors import InputError
 from tools.cli import main as slam_main
 
 N_FRAMES = 40

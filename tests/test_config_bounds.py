@@ -13,7 +13,6 @@ from typing import Any
 import pytest
 from conftest import PROJECT_ROOT
 
-from slam.bounds import Bounds, field_bounds
 from slam.config import (
     PRESETS,
     SlamConfig,
@@ -22,7 +21,8 @@ from slam.config import (
     preset_config,
     validate_config,
 )
-from slam.errors import SlamError
+from slam.core.bounds import Bounds, field_bounds
+from slam.core.errors import SlamError
 
 
 def _numeric(hint: Any) -> bool:
@@ -60,7 +60,7 @@ def test_every_numeric_field_has_bounds_around_its_default(
 ) -> None:
     """A new numeric field without ``bounded(...)`` fails here."""
     bounds = field_bounds(f)
-    assert isinstance(bounds, Bounds), f"{key}: declare it with slam.bounds.bounded(...)"
+    assert isinstance(bounds, Bounds), f"{key}: declare it with slam.core.bounds.bounded(...)"
     assert bounds.lo is not None and math.isfinite(bounds.lo)
     assert bounds.hi is None or (math.isfinite(bounds.hi) and bounds.hi > bounds.lo)
     default = f.default

@@ -18,7 +18,7 @@ from datasets.euroc import (
 from datasets.mcap_io import McapSequence
 from datasets.memory import random_sequence
 from datasets.open import open_sequence
-from slam.geometry import invert_transform
+from slam.core.geometry import invert_transform
 from tools.cli import main as slam_main
 
 

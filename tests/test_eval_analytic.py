@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from slam.core.trajectory import Trajectory
 from slam.evaluation import evaluate as ev
 from slam.evaluation import io as evio
 from slam.evaluation import lie
 from slam.evaluation.align import estimate_alignment
-from slam.trajectory import Trajectory
 from tools.cli import main
 
 

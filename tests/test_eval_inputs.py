@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from slam.errors import InputError
+from slam.core.errors import InputError
+from slam.core.trajectory import Trajectory
 from slam.evaluation import io as evio
 from slam.evaluation.associate import associate
-from slam.trajectory import Trajectory
 from tools.cli import main
 
 GOOD = "1.0 0 0 0 0 0 0 1\n2.0 1 0 0 0 0 0 1\n3.0 2 1 0 0 0 0 1\n4.0 3 1 1 0 0 0 1\n"

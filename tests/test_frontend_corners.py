@@ -54,7 +54,7 @@ def test_a_zero_refinement_window_is_a_config_error(tmp_path) -> None:
     import pytest
 
     from slam.config import load_config
-    from slam.errors import SlamError
+    from slam.core.errors import SlamError
 
     bad = tmp_path / "bad.yaml"
     bad.write_text("preset: euroc-stereo-imu\nfrontend:\n  corner_subpixel_half_window_px: 0\n")

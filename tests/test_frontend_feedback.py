@@ -4,9 +4,9 @@ import numpy as np
 
 from datasets.rigs import euroc_like_calibration
 from slam.config import FrontendConfig
+from slam.core.geometry import make_transform, nearest_rigid, so3_exp
+from slam.core.messages import Estimate
 from slam.frontend.tracker import FrontEnd
-from slam.geometry import make_transform, nearest_rigid, so3_exp
-from slam.messages import Estimate
 
 
 def _orthonormality_error(pose: np.ndarray) -> float:

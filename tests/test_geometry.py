@@ -1,8 +1,13 @@
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from slam.calibration import Calibration, CameraCalibration, CameraIntrinsics, ImuCalibration
-from slam.geometry import invert_transform, make_transform, matrix_to_quat_wxyz, quat_wxyz_to_matrix
+from slam.core.calibration import Calibration, CameraCalibration, CameraIntrinsics, ImuCalibration
+from slam.core.geometry import (
+    invert_transform,
+    make_transform,
+    matrix_to_quat_wxyz,
+    quat_wxyz_to_matrix,
+)
 
 
 def test_invert_transform_roundtrip():
@@ -60,7 +65,7 @@ def test_calibration_dict_roundtrip():
 
 
 def test_rotation_angle_matches_the_rotation_vector_norm():
-    from slam.geometry import rotation_angle_rad, so3_exp, so3_log
+    from slam.core.geometry import rotation_angle_rad, so3_exp, so3_log
 
     rng = np.random.default_rng(4)
     for angle in (0.0, 1e-9, 1e-4, 0.3, 1.0, 2.5, np.pi - 1e-6):

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from datasets.rigs import euroc_like_calibration
+from slam.core.geometry import invert_transform, make_transform, so3_exp
 from slam.evaluation.align import ate_se3_rmse_m
-from slam.geometry import invert_transform, make_transform, so3_exp
 from slam.loop.closer import odometry_sigmas
 from slam.loop.config import LoopClosureConfig
 from slam.loop.global_ba import (

@@ -1,7 +1,7 @@
 import numpy as np
 
+from slam.core.messages import ImuSample
 from slam.imu_buffer import ImuBuffer, integrate_gyro, propagate_pose
-from slam.messages import ImuSample
 
 
 def _fill(buf: ImuBuffer, n: int, gyro=(0.0, 0.0, 1.0), accel=(0.0, 0.0, 9.81)) -> None:
@@ -48,7 +48,7 @@ def test_dead_reckoning_matches_the_per_sample_recurrence_and_constant_accelerat
     """The vectorised propagation equals the per-sample recurrence it replaced (the
     specification, written out here) on random motion, and the analytic result for a constant
     acceleration."""
-    from slam.geometry import so3_exp, so3_exp_batch
+    from slam.core.geometry import so3_exp, so3_exp_batch
 
     rng = np.random.default_rng(3)
     omegas = np.vstack([rng.normal(0, 1, (50, 3)), np.zeros((1, 3)), np.full((1, 3), 1e-8)])

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 
 from datasets.synth.keyframes import Drift, SyntheticKeyframe, ground_truth_keyframes
+from slam.core.geometry import invert_transform, make_transform, rotation_angle_rad, so3_exp
+from slam.core.messages import LoopCorrection
 from slam.evaluation.align import ate_se3_rmse_m
-from slam.geometry import invert_transform, make_transform, rotation_angle_rad, so3_exp
 from slam.loop.closer import LoopCloser, loop_closed_poses
 from slam.loop.config import LoopClosureConfig
 from slam.loop.vocabulary import Vocabulary, load_default_vocabulary
-from slam.messages import LoopCorrection
 
 DRIFT = Drift(yaw_deg_per_s=0.05, translation_m_per_s=(0.003, -0.002, 0.001))
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from slam.geometry import make_transform, so3_exp
+from slam.core.geometry import make_transform, so3_exp
 from slam.loop.odometry import (
     FULL_REFRESH_EVERY,
     REFRESH_LAST_KEYFRAMES,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from slam.geometry import invert_transform, make_transform, so3_exp, so3_log
+from slam.core.geometry import invert_transform, make_transform, so3_exp, so3_log
 from slam.loop.verify import match_descriptors, verify_loop
 
 K = np.array([[450.0, 0.0, 376.0], [0.0, 450.0, 240.0], [0.0, 0.0, 1.0]])

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from conftest import require
 
-from slam.errors import InputError
+from slam.core.errors import InputError
 from slam.loop.orb import detect_orb
 from slam.loop.training import AugmentOptions, default_training_images, skimage_photos
 from slam.loop.vocabulary import (

@@ -12,7 +12,7 @@ from synthetic_planes import PlaneScene, orbit_poses
 from mapping.mapper import DenseMapper, MapperConfig, StereoRig
 from mapping.planesweep import SweepConfig, Undistorter
 from mapping.tsdf import TsdfConfig
-from slam.calibration import CameraIntrinsics
+from slam.core.calibration import CameraIntrinsics
 
 W, H = 320, 240
 K = np.array([[230.0, 0.0, 160.0], [0.0, 230.0, 120.0], [0.0, 0.0, 1.0]])

@@ -8,7 +8,7 @@ from synthetic_planes import PlaneScene, look_at
 
 from mapping.patchmatch import PatchMatchConfig, patchmatch_stereo
 from mapping.planesweep import SourceView
-from slam.geometry import invert_transform
+from slam.core.geometry import invert_transform
 
 K = np.array([[115.0, 0.0, 80.0], [0.0, 115.0, 60.0], [0.0, 0.0, 1.0]])
 HW = (120, 160)

@@ -16,8 +16,8 @@ from mapping.planesweep import (
     plane_homography,
     plane_sweep,
 )
-from slam.calibration import CameraIntrinsics
-from slam.geometry import invert_transform
+from slam.core.calibration import CameraIntrinsics
+from slam.core.geometry import invert_transform
 
 K = np.array([[230.0, 0.0, 160.0], [0.0, 230.0, 120.0], [0.0, 0.0, 1.0]])
 HW = (240, 320)

@@ -7,8 +7,8 @@ import pytest
 from synthetic_planes import PlaneScene, orbit_poses
 
 from mapping.config import MapperStageConfig
-from slam.calibration import Calibration, CameraCalibration, CameraIntrinsics, ImuCalibration
-from slam.messages import Keyframe
+from slam.core.calibration import Calibration, CameraCalibration, CameraIntrinsics, ImuCalibration
+from slam.core.messages import Keyframe
 from slam.runtime.mapper import MapperStage
 
 W, H = 320, 240

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from mapping.planesweep import SourceView, SweepConfig, Undistorter, plane_sweep
-from slam.geometry import invert_transform
+from slam.core.geometry import invert_transform
 
 synth = pytest.importorskip("datasets.synth")
 

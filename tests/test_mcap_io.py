@@ -10,7 +10,7 @@ import pytest
 from datasets import cdr
 from datasets.mcap_io import McapSequence, write_sequence_mcap
 from datasets.memory import random_sequence
-from slam.messages import ImuSample, StereoFrame
+from slam.core.messages import ImuSample, StereoFrame
 
 
 @pytest.fixture(scope="module")

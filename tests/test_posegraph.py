@@ -10,8 +10,8 @@ import pytest
 from conftest import require
 from scipy.spatial.transform import Rotation
 
-from slam.errors import InputError
-from slam.geometry import invert_transform, so3_exp
+from slam.core.errors import InputError
+from slam.core.geometry import invert_transform, so3_exp
 from slam.posegraph import (
     PgoOptions,
     PoseEdge,

@@ -11,7 +11,7 @@ import pytest
 from datasets.mcap_io import McapSequence, write_sequence_mcap
 from datasets.mcap_scan import scan_mcap
 from datasets.memory import random_sequence
-from slam.messages import StereoFrame
+from slam.core.messages import StereoFrame
 from slam.runtime.reader import prefetched_messages
 
 

@@ -17,9 +17,9 @@ import pytest
 
 from datasets.synth.generator import euroc_like_calibration
 from slam.config import FrontendConfig, preset_config
+from slam.core.geometry import make_transform, so3_exp
+from slam.core.messages import Estimate
 from slam.frontend.tracker import FrontEnd
-from slam.geometry import make_transform, so3_exp
-from slam.messages import Estimate
 from slam.runtime.wiring import run_slam
 
 Z = np.array([0.0, 0.0, 1.0])

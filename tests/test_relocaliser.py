@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from datasets.synth.keyframes import Drift, ground_truth_keyframes
-from slam.geometry import invert_transform, so3_log
+from slam.core.geometry import invert_transform, so3_log
 from slam.loop.closer import LoopCloser
 from slam.loop.relocaliser import Relocaliser
 

@@ -15,8 +15,8 @@ from datasets.rgbd_calibration import (
     color_in_depth_camera,
     render_depth,
 )
-from slam.calibration import CameraIntrinsics
-from slam.geometry import invert_transform, so3_exp, so3_log
+from slam.core.calibration import CameraIntrinsics
+from slam.core.geometry import invert_transform, so3_exp, so3_log
 
 HW = (240, 320)
 K_DEPTH = np.array([[292.5, 0.0, 160.0], [0.0, 292.5, 120.0], [0.0, 0.0, 1.0]])

@@ -14,8 +14,8 @@ from datasets.info import describe
 from datasets.kalibr import load_kalibr
 from datasets.mcap_scan import scan_mcap
 from datasets.open import open_sequence
-from slam.errors import InputError
-from slam.geometry import invert_transform
+from slam.core.errors import InputError
+from slam.core.geometry import invert_transform
 
 CAM_FROM_IMU_0 = [
     [0.0148655429818, 0.999557249008, -0.0257744366974, 0.0652229095355],

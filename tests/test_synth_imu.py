@@ -8,8 +8,8 @@ import pytest
 
 from datasets.synth.imu_sim import exact_imu, simulate_imu
 from datasets.synth.trajectories import TimeWarp, make_profile
-from slam.calibration import ImuCalibration
-from slam.geometry import so3_exp, so3_log
+from slam.core.calibration import ImuCalibration
+from slam.core.geometry import so3_exp, so3_log
 
 G = 9.81
 

@@ -11,7 +11,7 @@ from datasets.rigs import euroc_like_calibration
 from datasets.synth.render import CameraRenderer, StereoRenderer, pixel_rays
 from datasets.synth.scene import Scene, build_scene
 from datasets.synth.trajectories import NOMINAL_FROM_BODY
-from slam.geometry import invert_transform, make_transform, transform_points
+from slam.core.geometry import invert_transform, make_transform, transform_points
 
 
 def _body_pose(position: np.ndarray, yaw: float, pitch: float, roll: float) -> np.ndarray:

@@ -11,9 +11,9 @@ from datasets.euroc import read_trajectory_file
 from datasets.rigs import euroc_like_calibration
 from datasets.synth import make_synthetic_sequence
 from datasets.synth.trajectories import PROFILES, make_profile
-from slam.errors import InputError
-from slam.geometry import matrix_to_quat_wxyz
-from slam.messages import ImuSample, StereoFrame
+from slam.core.errors import InputError
+from slam.core.geometry import matrix_to_quat_wxyz
+from slam.core.messages import ImuSample, StereoFrame
 
 
 @pytest.fixture(scope="module")

@@ -50,8 +50,8 @@ def run_benchmark(
     from datasets.synth.vio_world import generate_world
     from slam.backend.config import BackendConfig
     from slam.backend.smoother import VioBackend
+    from slam.core.messages import ImuSample
     from slam.evaluation.align import ate_se3_rmse_m
-    from slam.messages import ImuSample
 
     t0 = time.perf_counter()
     world = generate_world(

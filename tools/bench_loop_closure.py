@@ -35,9 +35,9 @@ def main(argv: list[str] | None = None) -> int:
     from datasets.synth import make_synthetic_sequence
     from datasets.synth.keyframes import Drift
     from slam.config import FrontendConfig
+    from slam.core.geometry import invert_transform
     from slam.evaluation.align import ate_se3_rmse_m
     from slam.frontend.tracker import FrontEnd
-    from slam.geometry import invert_transform
     from slam.loop.closer import LoopCloser, loop_closed_poses
     from slam.loop.database import LoopDetector
     from slam.loop.relocaliser import Relocaliser

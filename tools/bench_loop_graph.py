@@ -25,7 +25,7 @@ import numpy as np
 
 
 def _mats(rows: list[list[float]]) -> np.ndarray:
-    from slam.geometry import quat_wxyz_to_matrix
+    from slam.core.geometry import quat_wxyz_to_matrix
 
     arr = np.asarray(rows, dtype=float).reshape(-1, 7)
     out = np.tile(np.eye(4), (len(arr), 1, 1))
@@ -36,7 +36,7 @@ def _mats(rows: list[list[float]]) -> np.ndarray:
 
 def _rel_error(measured: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     """(translation error m, rotation error deg) of two relative poses."""
-    from slam.geometry import invert_transform, rotation_angle_rad
+    from slam.core.geometry import invert_transform, rotation_angle_rad
 
     d = invert_transform(truth) @ measured
     return float(np.linalg.norm(d[:3, 3])), float(np.degrees(rotation_angle_rad(d[:3, :3])))
@@ -45,9 +45,9 @@ def _rel_error(measured: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
 def analyse(run_dir: Path, seq_path: Path) -> dict[str, Any]:
     """The diagnostics above as a dict (see the module docstring)."""
     from datasets.open import open_sequence
-    from slam.errors import SlamError
+    from slam.core.errors import SlamError
+    from slam.core.geometry import invert_transform
     from slam.evaluation.align import ate_se3_rmse_m
-    from slam.geometry import invert_transform
     from slam.loop.closer import odometry_sigmas
     from slam.loop.config import LoopClosureConfig
 

@@ -37,7 +37,7 @@ from mapping.patchmatch import PatchMatchConfig, patchmatch_stereo
 from mapping.planesweep import SourceView, SweepConfig, Undistorter, plane_sweep
 from mapping.render import render_mesh
 from mapping.tsdf import TsdfConfig, TsdfVolume
-from slam.geometry import invert_transform
+from slam.core.geometry import invert_transform
 
 DATA = Path(
     os.environ.get("SLAM_DATA_DIR", Path(__file__).resolve().parents[2] / "shared" / "data")

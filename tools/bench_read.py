@@ -22,7 +22,7 @@ from datasets.mcap_io import McapSequence, write_sequence_mcap
 from datasets.memory import textured_image
 from datasets.rigs import small_rig_calibration
 from datasets.sequence import ImuArrays, Sequence
-from slam.messages import StereoFrame
+from slam.core.messages import StereoFrame
 
 
 class TexturedSequence(Sequence):

@@ -28,8 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from slam.errors import SlamError
-from slam.geometry import rotation_angle_rad
+from slam.core.errors import SlamError
+from slam.core.geometry import rotation_angle_rad
 
 SUITE_VERSION = 1
 
@@ -124,7 +124,7 @@ def loop_off_config(run_dir: Path, dest: Path) -> Path | None:
     that run had loop closure off already)."""
     import yaml
 
-    from slam.output import write_atomic
+    from slam.core.atomic import write_atomic
 
     data = yaml.safe_load((run_dir / "config.yaml").read_text()) or {}
     if not data.get("loop_closure"):
@@ -195,7 +195,7 @@ def false_loops(seq_path: Path, stats: dict[str, Any]) -> int | None:
     if not loops:
         return 0 if loops is not None else None
     from datasets.open import open_sequence
-    from slam.geometry import quat_wxyz_to_matrix
+    from slam.core.geometry import quat_wxyz_to_matrix
 
     gt = open_sequence(seq_path).ground_truth
     if gt is None or len(gt) == 0:
@@ -308,7 +308,7 @@ def run_benchmark(
     loop_baseline: bool = True,
 ) -> tuple[list[dict[str, Any]], str]:
     """Run everything, write ``results.json`` and ``results.md`` to ``out_dir``."""
-    from slam.output import write_atomic
+    from slam.core.atomic import write_atomic
 
     out_dir.mkdir(parents=True, exist_ok=True)
     todo: list[tuple[str, Path, bool]] = []

@@ -15,7 +15,7 @@ import importlib
 import logging
 import sys
 
-from slam.errors import SlamError
+from slam.core.errors import SlamError
 
 COMMANDS: dict[str, tuple[str, str]] = {
     "synth": ("tools.cmd_synth", "generate a synthetic stereo+IMU sequence with ground truth"),

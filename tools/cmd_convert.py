@@ -6,7 +6,7 @@ import argparse
 import logging
 
 from datasets.mcap_io import write_sequence_mcap
-from slam.errors import InputError
+from slam.core.errors import InputError
 from tools.seq_args import SEQUENCE_HELP, add_sequence_args, open_from_args
 
 log = logging.getLogger(__name__)

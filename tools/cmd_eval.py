@@ -253,7 +253,7 @@ def main(argv: list[str] | None = None) -> int:
     import logging
     import sys
 
-    from slam.errors import SlamError
+    from slam.core.errors import SlamError
 
     parser = argparse.ArgumentParser(prog="slam")
     sub = parser.add_subparsers(dest="command")

@@ -60,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     from mapping.mapper import MapperConfig
     from mapping.planesweep import SweepConfig
     from mapping.tsdf import TsdfConfig
-    from slam.errors import InputError
+    from slam.core.errors import InputError
 
     if args.voxel <= 0 or args.voxel > 1.0:
         raise InputError(f"--voxel {args.voxel}: give a voxel size in metres, e.g. 0.02")

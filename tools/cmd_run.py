@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from slam.errors import SlamError
+from slam.core.errors import SlamError
 
 EPILOG = """\
 examples:

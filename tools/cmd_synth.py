@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from datasets.synth.trajectories import PROFILES
-from slam.errors import InputError
+from slam.core.errors import InputError
 
 DESCRIPTION = """\
 Render a synthetic stereo-inertial sequence with exact ground truth and write it as our MCAP

@@ -17,7 +17,7 @@ from tqdm import tqdm
 
 from datasets.ply import write_ply_mesh
 from datasets.synth.generator import SyntheticSequence
-from slam.atomic import write_atomic
+from slam.core.atomic import write_atomic
 
 DEPTH_SCALE_M = 0.001  # one unit of the 16-bit depth PNGs, metres (TUM/7-Scenes convention)
 

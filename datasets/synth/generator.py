@@ -29,13 +29,13 @@ from datasets.synth.trajectories import (
     make_profile,
     motion_from_file,
 )
-from slam.calibration import (
+from slam.core.calibration import (
     Calibration,
     ImuCalibration,
 )
-from slam.errors import InputError
-from slam.messages import StereoFrame
-from slam.trajectory import Trajectory
+from slam.core.errors import InputError
+from slam.core.messages import StereoFrame
+from slam.core.trajectory import Trajectory
 
 PREFETCH_FRAMES = 2  # frames rendered ahead by iter_frames()
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from datasets.sequence import ImuArrays
 from datasets.synth.trajectories import Motion
-from slam.calibration import ImuCalibration
+from slam.core.calibration import ImuCalibration
 
 
 @dataclass(frozen=True, eq=False)
@@ -86,7 +86,7 @@ def read_imu_csv(path: str, t_from_ns: int | None = None, t_to_ns: int | None = 
     """A EuRoC ``imu0/data.csv`` (t_ns, gyro xyz rad/s, accel xyz m/s^2), optionally clipped."""
     from pathlib import Path
 
-    from slam.errors import InputError
+    from slam.core.errors import InputError
 
     p = Path(path)
     if not p.is_file():

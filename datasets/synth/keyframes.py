@@ -14,8 +14,8 @@ import cv2
 import numpy as np
 
 from datasets.synth.generator import SyntheticSequence
-from slam.geometry import make_transform, so3_exp
-from slam.messages import Keyframe
+from slam.core.geometry import make_transform, so3_exp
+from slam.core.messages import Keyframe
 
 
 @dataclass(frozen=True)

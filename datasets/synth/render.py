@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from datasets.synth.scene import Scene
-from slam.calibration import CameraCalibration, CameraIntrinsics
+from slam.core.calibration import CameraCalibration, CameraIntrinsics
 
 BAND_ROWS = 48
 

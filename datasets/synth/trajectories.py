@@ -24,7 +24,7 @@ from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, RotationSpline
 
 from datasets.euroc import read_trajectory_file
-from slam.errors import InputError
+from slam.core.errors import InputError
 
 # columns: body x (up), body y (right), body z (forward) in the nominal frame (x fwd, y left, z up)
 NOMINAL_FROM_BODY = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])

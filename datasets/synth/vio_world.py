@@ -20,9 +20,9 @@ from scipy.spatial.transform import Rotation
 from datasets.rigs import euroc_like_calibration
 from datasets.synth.imu_sim import SimulatedImu, simulate_imu
 from datasets.synth.trajectories import ProfileMotion, SinusoidChannel, TimeWarp
-from slam.calibration import Calibration, CameraIntrinsics
-from slam.geometry import invert_transform, make_transform, transform_points
-from slam.messages import ImuBatch, ImuSample, Keyframe
+from slam.core.calibration import Calibration, CameraIntrinsics
+from slam.core.geometry import invert_transform, make_transform, transform_points
+from slam.core.messages import ImuBatch, ImuSample, Keyframe
 
 
 def room_flight(start_s: float = 0.0, still_s: float = 0.0, ramp_s: float = 2.0) -> ProfileMotion:

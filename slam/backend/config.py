@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from slam.bounds import bounded
+from slam.core.bounds import bounded
 
 
 @dataclass(frozen=True)

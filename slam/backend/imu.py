@@ -17,7 +17,7 @@ import gtsam
 import numpy as np
 
 from slam.backend.config import BackendConfig
-from slam.calibration import ImuCalibration
+from slam.core.calibration import ImuCalibration
 from slam.imu_buffer import ImuBuffer
 
 

@@ -26,8 +26,8 @@ from scipy.spatial.transform import Rotation
 
 from slam.backend.config import BackendConfig
 from slam.backend.imu import integrate_pieces, integration_pieces, make_bias, preintegration_params
-from slam.calibration import ImuCalibration
-from slam.geometry import make_transform, so3_log
+from slam.core.calibration import ImuCalibration
+from slam.core.geometry import make_transform, so3_log
 
 Z_UP = np.array([0.0, 0.0, 1.0])
 

@@ -48,10 +48,10 @@ from slam.backend.init import (
     still_init_kalman,
     world_from_vo_gravity,
 )
-from slam.calibration import Calibration
-from slam.errors import SlamError
-from slam.geometry import invert_transform
-from slam.messages import Estimate, ImuSample, Keyframe
+from slam.core.calibration import Calibration
+from slam.core.errors import SlamError
+from slam.core.geometry import invert_transform
+from slam.core.messages import Estimate, ImuSample, Keyframe
 
 log = logging.getLogger(__name__)
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slam.errors import InputError
+from slam.core.errors import InputError
 from slam.evaluation import lie
 
 ALIGNMENTS = ("se3", "sim3", "scale", "posyaw", "origin", "none")

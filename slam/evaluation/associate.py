@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slam.errors import InputError
+from slam.core.errors import InputError
 from slam.evaluation import lie
 from slam.evaluation.io import PoseSource
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slam.errors import InputError
+from slam.core.errors import InputError
 from slam.evaluation import align as align_mod
 from slam.evaluation import metrics
 from slam.evaluation.associate import Association, associate

@@ -13,7 +13,7 @@ Formats (``FORMATS``):
   sequence  a sequence's ground truth: an EuRoC folder, or our MCAP with /groundtruth/pose,
             through ``datasets.open.open_sequence`` when that module is present
 
-Every problem raises :class:`slam.errors.InputError` with ``file:line: what is wrong``.
+Every problem raises :class:`slam.core.errors.InputError` with ``file:line: what is wrong``.
 """
 
 from __future__ import annotations
@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from slam.errors import InputError
+from slam.core.errors import InputError
+from slam.core.trajectory import Trajectory
 from slam.evaluation import lie
-from slam.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 
@@ -632,7 +632,7 @@ EUROC_HEADER = (
 
 
 def _write_atomic(path: Path, text: str) -> None:
-    from slam.atomic import write_atomic
+    from slam.core.atomic import write_atomic
 
     write_atomic(path, text)
 

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from slam.errors import InputError
+from slam.core.errors import InputError
 
 TABLE_FORMATS = ("markdown", "csv", "latex")
 TABLE_COLUMNS = ("rmse", "mean", "median", "std", "min", "max")
@@ -65,7 +65,7 @@ def write_json(path: str | Path, results: list[EvalResult]) -> None:
     """Write one result (a JSON object) or several (a list), atomically."""
     import json
 
-    from slam.atomic import atomic_output
+    from slam.core.atomic import atomic_output
 
     payload: Any = results[0].to_dict() if len(results) == 1 else [r.to_dict() for r in results]
     with atomic_output(path, text=True) as f:

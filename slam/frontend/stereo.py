@@ -13,10 +13,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from slam.calibration import Calibration
 from slam.config import FrontendConfig
+from slam.core.calibration import Calibration
+from slam.core.geometry import skew, transform_points
 from slam.frontend.features import track_klt
-from slam.geometry import skew, transform_points
 
 
 @dataclass(frozen=True, eq=False)

@@ -23,13 +23,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from slam.calibration import Calibration
 from slam.config import FrontendConfig
-from slam.cputime import runqueue_wait_ns, thread_cpu_s
-from slam.frontend.affine_klt import TrackTemplates
-from slam.frontend.features import build_pyramid, detect_features, track_klt
-from slam.frontend.stereo import StereoMatcher
-from slam.geometry import (
+from slam.core.calibration import Calibration
+from slam.core.geometry import (
     invert_transform,
     is_rigid,
     make_transform,
@@ -37,8 +33,12 @@ from slam.geometry import (
     rotation_angle_rad,
     transform_points,
 )
+from slam.core.messages import Estimate, FrontendCorrection, Keyframe, StereoFrame, TrackingResult
+from slam.cputime import runqueue_wait_ns, thread_cpu_s
+from slam.frontend.affine_klt import TrackTemplates
+from slam.frontend.features import build_pyramid, detect_features, track_klt
+from slam.frontend.stereo import StereoMatcher
 from slam.imu_buffer import ImuBuffer, integrate_gyro, propagate_pose
-from slam.messages import Estimate, FrontendCorrection, Keyframe, StereoFrame, TrackingResult
 
 MAX_STORED_KEYFRAME_POSES = 200
 

@@ -32,8 +32,9 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from slam.calibration import Calibration
-from slam.geometry import invert_transform, rotation_angle_rad, so3_exp_batch, so3_log
+from slam.core.calibration import Calibration
+from slam.core.geometry import invert_transform, rotation_angle_rad, so3_exp_batch, so3_log
+from slam.core.messages import Keyframe, LoopCorrection
 from slam.loop.config import LoopClosureConfig
 from slam.loop.database import LoopDetector, LoopDetectorParams
 from slam.loop.global_ba import (
@@ -45,7 +46,6 @@ from slam.loop.global_ba import (
 from slam.loop.store import KeyframeDescription, KeyframeStore, describe_keyframe
 from slam.loop.verify import LoopVerification, VerifyParams, verify_loop, verify_loop_landmarks
 from slam.loop.vocabulary import Vocabulary, load_default_vocabulary
-from slam.messages import Keyframe, LoopCorrection
 from slam.posegraph import (
     DEFAULT_KERNEL_WIDTH,
     GNC_INLIER_CHI2,
@@ -200,7 +200,7 @@ class LoopStats:
     verify_ms: list[float] = field(default_factory=list)
 
     def summary(self) -> dict[str, object]:
-        from slam.runtime.stage import latency_summary as pct
+        from slam.core.latency import latency_summary as pct
 
         return {
             "keyframes": self.keyframes,
@@ -808,7 +808,7 @@ class LoopCloser:
     def graph_dump(self) -> dict[str, object]:
         """The pose graph as plain lists (JSON): per keyframe id, t_ns, segment, odometry and
         corrected poses (x y z qw qx qy qz); per loop, its edge (match_body_from_query_body)."""
-        from slam.geometry import matrix_to_quat_wxyz
+        from slam.core.geometry import matrix_to_quat_wxyz
 
         def vec(pose: np.ndarray) -> list[float]:
             q = matrix_to_quat_wxyz(pose[:3, :3])

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from slam.calibration import Calibration
+from slam.core.calibration import Calibration
 from slam.posegraph import PoseEdge, gaussian_from_g2o_information
 
 

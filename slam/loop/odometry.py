@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from slam.geometry import invert_transform, is_rigid, rotation_angle_rad
+from slam.core.geometry import invert_transform, is_rigid, rotation_angle_rad
 
 REFRESH_LAST_KEYFRAMES = 30  # odometry poses re-read per new keyframe (the back end's window)
 FULL_REFRESH_EVERY = 10  # ... and the older ones', every this many keyframes (see below)

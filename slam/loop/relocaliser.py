@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slam.calibration import Calibration
-from slam.geometry import invert_transform
+from slam.core.calibration import Calibration
+from slam.core.geometry import invert_transform
 from slam.loop.config import LoopClosureConfig
 from slam.loop.store import KeyframeStore, describe_image
 from slam.loop.verify import VerifyParams, verify_loop

@@ -24,12 +24,12 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from slam.calibration import CameraIntrinsics
-from slam.geometry import invert_transform
+from slam.core.calibration import CameraIntrinsics
+from slam.core.geometry import invert_transform
+from slam.core.messages import Keyframe
 from slam.loop.database import KeyframeDatabase
 from slam.loop.orb import OrbFeatures, detect_orb
 from slam.loop.vocabulary import BowVector, Vocabulary
-from slam.messages import Keyframe
 
 ORB_HALF_PATCH = 15  # OpenCV ORB's HALF_PATCH_SIZE (patchSize 31)
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from slam.errors import InputError
+from slam.core.errors import InputError
 from slam.loop.orb import detect_orb
 from slam.loop.vocabulary import Vocabulary
 

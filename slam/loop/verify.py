@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from slam.geometry import invert_transform, make_transform
+from slam.core.geometry import invert_transform, make_transform
 
 
 @dataclass(frozen=True)

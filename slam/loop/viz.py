@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from slam.messages import LoopCorrection
+from slam.core.messages import LoopCorrection
 
 
 def log_loop_correction(

@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from slam.atomic import write_atomic
-from slam.errors import InputError
+from slam.core.atomic import write_atomic
+from slam.core.errors import InputError
 
 DESCRIPTOR_BYTES = 32  # ORB: 256 bits
 FORMAT_VERSION = 1

@@ -19,9 +19,10 @@ from typing import Any
 import numpy as np
 
 from slam.backend.config import BackendConfig
-from slam.calibration import Calibration
-from slam.messages import BackendFinal, BackendOutput, Estimate, ImuBatch, ImuSample, Keyframe
-from slam.runtime.stage import Latest, latency_summary
+from slam.core.calibration import Calibration
+from slam.core.latency import latency_summary
+from slam.core.messages import BackendFinal, BackendOutput, Estimate, ImuBatch, ImuSample, Keyframe
+from slam.runtime.stage import Latest
 from slam.runtime.worker import ProcessStage, WorkerCore
 
 log = logging.getLogger(__name__)

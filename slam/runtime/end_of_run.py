@@ -11,13 +11,13 @@ from collections.abc import Callable
 
 import numpy as np
 
-from slam.geometry import invert_transform
+from slam.core.geometry import invert_transform
+from slam.core.trajectory import Trajectory
 from slam.loop.closer import loop_closed_poses
-from slam.output import trajectory_from_poses
 from slam.runtime.backend import BackendStage
 from slam.runtime.loop import LoopClosureStage
+from slam.runtime.outputs import trajectory_from_poses
 from slam.runtime.recorder import Recorder
-from slam.trajectory import Trajectory
 
 
 def keyframe_trajectory(

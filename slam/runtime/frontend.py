@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from slam.core.messages import StereoFrame
 from slam.frontend.tracker import FrontEnd
-from slam.messages import StereoFrame
 from slam.runtime.stage import Stage
 
 

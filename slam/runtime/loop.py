@@ -25,15 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from slam.calibration import Calibration
-from slam.frontend.tracker import MAX_STORED_KEYFRAME_POSES
-from slam.geometry import invert_transform
-from slam.loop.config import LoopClosureConfig
-from slam.loop.odometry import OdometryRefresher, before_first_smoothed
-from slam.loop.relocaliser import Relocaliser
-from slam.loop.store import KeyframeStore
-from slam.loop.vocabulary import load_default_vocabulary
-from slam.messages import (
+from slam.core.calibration import Calibration
+from slam.core.geometry import invert_transform
+from slam.core.messages import (
     BackendOutput,
     FrontendCorrection,
     Keyframe,
@@ -42,6 +36,12 @@ from slam.messages import (
     LoopInput,
     LoopOutput,
 )
+from slam.frontend.tracker import MAX_STORED_KEYFRAME_POSES
+from slam.loop.config import LoopClosureConfig
+from slam.loop.odometry import OdometryRefresher, before_first_smoothed
+from slam.loop.relocaliser import Relocaliser
+from slam.loop.store import KeyframeStore
+from slam.loop.vocabulary import load_default_vocabulary
 from slam.runtime.stage import Latest
 from slam.runtime.worker import ProcessStage, WorkerCore
 

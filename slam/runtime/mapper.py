@@ -24,8 +24,9 @@ import cv2
 import numpy as np
 
 from mapping.config import MapperStageConfig
-from slam.calibration import Calibration
-from slam.messages import (
+from slam.core.calibration import Calibration
+from slam.core.latency import latency_summary
+from slam.core.messages import (
     Keyframe,
     LoopCorrection,
     MapFinish,
@@ -34,7 +35,6 @@ from slam.messages import (
     MapperSummary,
     MeshSnapshot,
 )
-from slam.runtime.stage import latency_summary
 from slam.runtime.worker import ProcessStage, WorkerCore
 
 log = logging.getLogger(__name__)

@@ -13,8 +13,8 @@ from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass
 from typing import Any
 
+from slam.core.messages import ImuBatch, ImuSample, StereoFrame
 from slam.imu_buffer import ImuBuffer
-from slam.messages import ImuBatch, ImuSample, StereoFrame
 from slam.runtime.control import RunControl
 from slam.runtime.stage import Stage, StageError
 

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from datasets.sequence import Sequence
-from slam.messages import ImuBatch, ImuSample, ReaderBundle, ReaderEnd, StereoFrame
+from slam.core.messages import ImuBatch, ImuSample, ReaderBundle, ReaderEnd, StereoFrame
 from slam.runtime.priority import apply_role, ignore_stop_signals
 from slam.runtime.worker import main_process_gone
 

@@ -12,10 +12,10 @@ from typing import Any
 
 import numpy as np
 
-from slam.messages import BackendOutput, FrontendCorrection, LoopCorrection, TrackingResult
-from slam.output import trajectory_from_poses
-from slam.runtime.stage import latency_summary
-from slam.trajectory import Trajectory
+from slam.core.latency import latency_summary
+from slam.core.messages import BackendOutput, FrontendCorrection, LoopCorrection, TrackingResult
+from slam.core.trajectory import Trajectory
+from slam.runtime.outputs import trajectory_from_poses
 
 
 class Recorder:

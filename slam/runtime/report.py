@@ -16,7 +16,8 @@ from typing import TYPE_CHECKING, Any
 
 from datasets.sequence import Sequence
 from slam.config import SlamConfig, config_to_yaml
-from slam.output import write_run_outputs
+from slam.core.latency import latency_summary
+from slam.core.trajectory import Trajectory
 from slam.runtime.control import RunControl
 from slam.runtime.end_of_run import (
     final_keyframe_poses,
@@ -24,10 +25,10 @@ from slam.runtime.end_of_run import (
     loop_closed_trajectory,
 )
 from slam.runtime.memory import TreeMemory
+from slam.runtime.outputs import write_run_outputs
 from slam.runtime.player import PlayState, real_time_factor
-from slam.runtime.stage import StageError, latency_summary
+from slam.runtime.stage import StageError
 from slam.runtime.viewer import ViewerSession
-from slam.trajectory import Trajectory
 
 if TYPE_CHECKING:
     from slam.runtime.wiring import Pipeline

@@ -19,9 +19,8 @@ import traceback
 from abc import ABC, abstractmethod
 from typing import Any, Protocol
 
-import numpy as np
-
-from slam.messages import EndOfStream
+from slam.core.latency import latency_summary
+from slam.core.messages import EndOfStream
 
 log = logging.getLogger(__name__)
 
@@ -177,20 +176,6 @@ class Stage(ABC):
     def latency_stats(self) -> dict[str, float]:
         """p50/p90/p99/max of process() time in ms."""
         return latency_summary(self.latencies_ms)
-
-
-def latency_summary(values_ms: list[float]) -> dict[str, float]:
-    """Count and p50/p90/p99/max of durations in ms (``{"count": 0}`` when there are none)."""
-    if not values_ms:
-        return {"count": 0}
-    a = np.asarray(values_ms)
-    return {
-        "count": len(a),
-        "p50_ms": float(np.percentile(a, 50)),
-        "p90_ms": float(np.percentile(a, 90)),
-        "p99_ms": float(np.percentile(a, 99)),
-        "max_ms": float(a.max()),
-    }
 
 
 class Latest:

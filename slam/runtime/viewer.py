@@ -31,11 +31,11 @@ from typing import Any
 import cv2
 import numpy as np
 
-from slam.calibration import Calibration
 from slam.config import VizConfig
-from slam.errors import SlamError
-from slam.geometry import invert_transform
-from slam.messages import (
+from slam.core.calibration import Calibration
+from slam.core.errors import SlamError
+from slam.core.geometry import invert_transform
+from slam.core.messages import (
     BackendOutput,
     Keyframe,
     LoopCorrection,
@@ -43,8 +43,8 @@ from slam.messages import (
     TrackingResult,
     ViewerText,
 )
+from slam.core.trajectory import Trajectory
 from slam.runtime.stage import Stage
-from slam.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 

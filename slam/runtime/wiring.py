@@ -27,9 +27,7 @@ from typing import Any
 
 from datasets.sequence import Sequence
 from slam.config import SlamConfig, validate_config
-from slam.frontend.tracker import FrontEnd
-from slam.imu_buffer import ImuBuffer
-from slam.messages import (
+from slam.core.messages import (
     BackendOutput,
     FrontendCorrection,
     Keyframe,
@@ -37,6 +35,8 @@ from slam.messages import (
     MeshSnapshot,
     TrackingResult,
 )
+from slam.frontend.tracker import FrontEnd
+from slam.imu_buffer import ImuBuffer
 from slam.runtime.backend import BackendStage
 from slam.runtime.control import RunControl, handle_stop_signals
 from slam.runtime.frontend import FrontendStage

@@ -3,7 +3,7 @@
 GTSAM holds the GIL for whole calls and the mapper's numpy work is heavy, so the back end, the
 loop closer and the mapper each run their :class:`WorkerCore` in a spawned worker process in
 concurrent runs (threads are running, so no fork), and inline in sequential runs: the same code
-either way. One typed protocol (``slam.messages``): the worker sends :class:`WorkerReady` once
+either way. One typed protocol (``slam.core.messages``): the worker sends :class:`WorkerReady` once
 it can work, any outputs, and after :class:`EndOfStream` a :class:`WorkerFinal` with what the
 stage returns at the end, or :class:`WorkerFailed` and ends. A worker that ends without either
 died: that is an error of its own.
@@ -21,7 +21,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 from typing import Any
 
-from slam.messages import EndOfStream, WorkerFailed, WorkerFinal, WorkerReady
+from slam.core.messages import EndOfStream, WorkerFailed, WorkerFinal, WorkerReady
 from slam.runtime.priority import apply_role, ignore_stop_signals
 from slam.runtime.stage import Stage, StageError
 

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slam.geometry import matrix_to_quat_wxyz, poses_to_matrices
+from slam.core.geometry import matrix_to_quat_wxyz, poses_to_matrices
 
 
 @dataclass(frozen=True, eq=False)

@@ -186,7 +186,7 @@ class Calibration:
 
     def cam1_from_cam0(self) -> np.ndarray:
         """Rigid transform from the left to the right camera frame (stereo only)."""
-        from slam.geometry import invert_transform
+        from slam.core.geometry import invert_transform
 
         return invert_transform(self.cameras[1].body_from_cam) @ self.cameras[0].body_from_cam
 

@@ -17,9 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from slam.atomic import write_atomic
+from slam.core.atomic import write_atomic
+from slam.core.trajectory import Trajectory
 from slam.evaluation.io import write_euroc_csv, write_tum
-from slam.trajectory import Trajectory
 
 #: The comment line of the run's TUM files (after the '#').
 RUN_TUM_HEADER = "timestamp[s] tx ty tz qx qy qz qw  (world_from_body, body = IMU)"
