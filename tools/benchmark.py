@@ -90,7 +90,11 @@ def ensure_sequence(entry: SuiteEntry, cache_dir: Path, progress: bool = True) -
 
 
 def run_one(
-    seq_path: Path, out_dir: Path, preset: str | None, extra_args: list[str]
+    seq_path: Path,
+    out_dir: Path,
+    preset: str | None,
+    extra_args: list[str],
+    speed: str = "max",
 ) -> dict[str, Any]:
     """`slam run` in its own process; returns its stats.json (raises on failure)."""
     cmd = [
@@ -102,7 +106,7 @@ def run_one(
         "--out",
         str(out_dir),
         "--speed",
-        "max",
+        speed,
         "--no-progress",
         *extra_args,
     ]
@@ -241,7 +245,7 @@ def summarise(name: str, stats: dict[str, Any], acc: dict[str, Any]) -> dict[str
         "backend_p99_ms": (be.get("update") or {}).get("p99_ms"),
         "backend_resets": be.get("resets"),
         "peak_rss_mb": stats.get("peak_rss_mb"),
-        "peak_rss_backend_mb": stats.get("peak_rss_children_mb"),
+        "end_of_run_s": stats.get("end_of_run_s"),
         "keyframes": stats.get("keyframes"),
     }
 
@@ -261,11 +265,12 @@ COLUMNS = (
     ("false_loops", "false loops", "{}"),
     ("init_s", "init (s)", "{:.2f}"),
     ("real_time_factor", "RTF", "{:.2f}"),
+    ("end_of_run_s", "end (s)", "{:.1f}"),
     ("frontend_p50_ms", "FE p50 (ms)", "{:.1f}"),
     ("frontend_p99_ms", "FE p99 (ms)", "{:.1f}"),
     ("backend_p50_ms", "BE p50 (ms)", "{:.1f}"),
     ("backend_p99_ms", "BE p99 (ms)", "{:.1f}"),
-    ("peak_rss_mb", "peak RSS (MB)", "{:.0f}"),
+    ("peak_rss_mb", "peak memory (MB)", "{:.0f}"),
 )
 
 
