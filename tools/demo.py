@@ -72,10 +72,13 @@ def main(argv: list[str] | None = None) -> int:
             str(out / "ape.json"),
         ],
     )
+    rrd = out / "run.rrd"
     print(
-        f"\nDone. Open the recording with `.venv/bin/rerun {out / 'run.rrd'}`; "
-        f"the trajectory is in {run}/trajectory.tum (loop-closed: trajectory_loop_closed.tum), "
-        f"the mesh in {run}/mesh.ply (MeshLab, Open3D), the error plot in {out / 'ape.png'}."
+        f"\nDone. The trajectory is in {run}/trajectory.tum (loop-closed: "
+        f"trajectory_loop_closed.tum), the error plot in {out / 'ape.png'}.\n"
+        f"Look at the recording: `.venv/bin/rerun {rrd}` (a window), or without a display "
+        f"`.venv/bin/rerun {rrd} --web-viewer --bind 127.0.0.1` and open the printed "
+        "http://127.0.0.1:9090 address in a browser."
     )
     return 0
 

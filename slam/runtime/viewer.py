@@ -213,7 +213,7 @@ def open_recording(
             path = Path(out_dir) / "recording.rrd"
             log.warning(
                 "--rerun spawn: no display here (DISPLAY is not set); recording to %s instead "
-                "(look at it with: rerun --web-viewer %s, or use --rerun serve)",
+                "(look at it with: rerun %s --web-viewer --bind 127.0.0.1; or use --rerun serve)",
                 path,
                 path,
             )
