@@ -123,3 +123,95 @@ def test_run_with_mesh_writes_a_ply(seq_path, tmp_path):
     # the room is 8 x 6 x 3 m: the mesh stays inside a box around it
     for axis in ("x", "y", "z"):
         assert abs(v[axis]).max() < 10.0
+
+
+def test_memory_counts_the_whole_process_tree(seq_path, tmp_path):
+    out = tmp_path / "run"
+    argv = ["run", str(seq_path), "--out", str(out), "--speed", "max", "--no-progress"]
+    assert slam(argv) == 0
+    stats = json.loads((out / "stats.json").read_text())
+    mem = stats["memory"]
+    per = mem["per_process_peak_mb"]
+    roles = {name.split(" (")[0] for name in per}
+    assert {"main", "backend", "loop"} <= roles, per  # the stereo-inertial preset's workers
+    assert mem["total_peak_mb"] >= max(per.values())
+    assert mem["sum_of_process_peaks_mb"] >= mem["total_peak_mb"] - 1.0
+    assert stats["peak_rss_mb"] == mem["total_peak_mb"]
+    # one real-time factor: the tracking's, with the end-of-run work beside it
+    assert stats["real_time_factor"] == pytest.approx(
+        stats["sequence_duration_s"] / stats["tracking_wall_s"]
+    )
+    assert stats["end_of_run_s"] >= 0 and "loop" in stats["end_of_run_parts_s"]
+
+
+def test_a_run_that_tracks_nothing_exits_non_zero(tmp_path):
+    """Black frames: nothing can be tracked; the run ends with an error, not exit 0."""
+    import numpy as np
+
+    from datasets.mcap_io import write_sequence_mcap
+    from datasets.memory import InMemorySequence, random_sequence
+
+    textured = random_sequence(num_frames=12, width=160, height=120, seed=2)
+    black = [np.zeros((120, 160), np.uint8)] * 12
+    seq = InMemorySequence(
+        "black",
+        textured.calibration,
+        textured.frame_times_ns(),
+        black,
+        black,
+        textured.imu(),
+        textured.ground_truth,
+    )
+    path = tmp_path / "black.mcap"
+    write_sequence_mcap(seq, path, progress=False)
+    proc = subprocess.run(
+        [sys.executable, "-m", "tools.cli", "run", str(path), "--out", str(tmp_path / "run")]
+        + ["--config", "stereo-vo", "--speed", "max", "--no-progress"],
+        cwd=PROJECT_ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 1, proc.stderr
+    assert "none of the 12 frames could be tracked" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_a_worker_that_dies_is_an_error_of_its_own(seq_path, tmp_path):
+    """The back-end worker is killed mid-run: exit 3, a message naming it, outputs kept."""
+    import os
+    import signal
+    import time
+
+    import psutil
+
+    out = tmp_path / "run"
+    cfg = tmp_path / "no-loop.yaml"
+    cfg.write_text("preset: euroc-stereo-imu\nloop_closure: false\n")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tools.cli", "run", str(seq_path), "--out", str(out)]
+        + ["--config", str(cfg), "--speed", "0.5", "--no-progress"],
+        cwd=PROJECT_ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    main = psutil.Process(proc.pid)
+    deadline = time.monotonic() + 90
+    workers: list[psutil.Process] = []
+    while time.monotonic() < deadline and len(workers) < 2:  # the back end, then the reader
+        workers = sorted(
+            (c for c in main.children() if "spawn_main" in " ".join(c.cmdline())),
+            key=lambda c: c.create_time(),
+        )
+        time.sleep(0.2)
+    assert len(workers) >= 2, "the back-end worker and the reader did not start"
+    time.sleep(1.0)
+    os.kill(workers[0].pid, signal.SIGKILL)  # the first started: the back end
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 3, err
+    assert "the backend worker process died (exit code -9)" in err
+    assert "Traceback" not in err
+    stats = json.loads((out / "stats.json").read_text())
+    assert "backend" in stats["error"]
+    assert (out / "trajectory.tum").exists()

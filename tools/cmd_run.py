@@ -22,6 +22,8 @@ examples:
 
 Ctrl-C (or SIGTERM) stops reading, ends every stage and writes every output for what was
 processed (exit code 130 / 143); a second Ctrl-C stops waiting for the stages.
+exit codes: 0 done, 1 a stage failed or no frame could be tracked, 2 bad input or
+configuration, 3 a worker process died (killed, out of memory), 130 / 143 stopped.
 
 outputs in --out DIR (written atomically, also after Ctrl-C or a failure):
   trajectory.tum   every tracked frame, world_from_body (body = IMU), TUM seconds
@@ -179,14 +181,20 @@ def print_summary(s: dict, out: Path) -> None:
         )
 
 
+EXIT_WORKER_DIED = 3
+
+
 def exit_code(result: Any) -> int:
-    """0; 1 for a stage failure or a run that tracked nothing; 128 + signal when stopped."""
+    """0; 1 for a stage failure or a run that tracked nothing; 3 when a worker process died;
+    128 + signal when stopped."""
     if result.error is not None:
+        from slam.runtime.worker import WorkerDied
+
         print(
             f"slam run: error: {result.error} (outputs saved for what was processed)",
             file=sys.stderr,
         )
-        return 1
+        return EXIT_WORKER_DIED if isinstance(result.error.exc, WorkerDied) else 1
     if result.interrupted:
         print(
             f"slam run: stopped by {result.stats.get('stopped_by') or 'SIGINT'}; outputs saved "

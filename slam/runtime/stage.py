@@ -31,6 +31,7 @@ class StageError(RuntimeError):
     def __init__(self, stage: str, exc: BaseException, trace: str):
         super().__init__(f"stage '{stage}' failed: {type(exc).__name__}: {exc}")
         self.stage = stage
+        self.exc = exc
         self.trace = trace
 
 

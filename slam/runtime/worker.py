@@ -26,6 +26,11 @@ from slam.runtime.priority import apply_role, ignore_stop_signals
 from slam.runtime.stage import Stage, StageError
 
 
+class WorkerDied(RuntimeError):
+    """A worker process ended without its final message (killed, out of memory, a crash in
+    native code)."""
+
+
 class WorkerCore(ABC):
     """The part of a stage that may run in a worker process: messages in, outputs out."""
 
@@ -268,7 +273,7 @@ class ProcessStage(Stage):
         if not self.final_seen.is_set() and self.error is None:
             self.error = StageError(
                 self.name,
-                RuntimeError(f"the {self.name} worker process died (exit code {exit_code})"),
+                WorkerDied(f"the {self.name} worker process died (exit code {exit_code})"),
                 "",
             )
         self.final_seen.set()
