@@ -63,7 +63,16 @@ def register(sub: argparse._SubParsersAction) -> None:
         help=f"a preset ({', '.join(sorted(PRESETS))}) or a YAML file; "
         "default: the stereo-inertial preset when the sequence has IMU, else stereo-vo",
     )
-    p.add_argument("--rerun", default="none", metavar="MODE", help=f"viewer: {RERUN_MODES}")
+    p.add_argument(
+        "--rerun",
+        default="none",
+        metavar="MODE",
+        help=f"viewer ({RERUN_MODES}): spawn = a viewer window (without a display the run "
+        "records to OUT/recording.rrd instead); save:FILE.rrd = a recording; serve = a web "
+        "viewer on this machine only (127.0.0.1, the URL is printed; serve:0.0.0.0 exposes it "
+        "to the network); connect:URL = a running viewer; none (default). The viewer never "
+        "slows the run down: it drops what it cannot take.",
+    )
     p.add_argument(
         "--speed",
         default=None,
