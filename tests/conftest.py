@@ -27,3 +27,19 @@ def require(path: Path) -> Path:
     if not path.exists():
         pytest.skip(f"shared data missing: {path}")
     return path
+
+
+def in_memory(seq):  # type: ignore[no-untyped-def]
+    """Render every frame of a sequence once, so repeated runs do not pay for rendering."""
+    from datasets.memory import InMemorySequence
+
+    frames = list(seq.iter_frames())
+    return InMemorySequence(
+        seq.name,
+        seq.calibration,
+        seq.frame_times_ns(),
+        [f.left for f in frames],
+        [f.right for f in frames],
+        seq.imu(),
+        seq.ground_truth,
+    )

@@ -12,33 +12,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import PROJECT_ROOT
+from conftest import PROJECT_ROOT, in_memory
 
 from slam.config import preset_config
 from slam.runtime.wiring import run_slam
-
-
-def _in_memory(seq):
-    """Render every frame once, so repeated runs do not pay for rendering again."""
-    from datasets.memory import InMemorySequence
-
-    frames = list(seq.iter_frames())
-    return InMemorySequence(
-        seq.name,
-        seq.calibration,
-        seq.frame_times_ns(),
-        [f.left for f in frames],
-        [f.right for f in frames],
-        seq.imu(),
-        seq.ground_truth,
-    )
 
 
 @pytest.fixture(scope="module")
 def short_seq():
     from datasets.synth import make_synthetic_sequence
 
-    return _in_memory(make_synthetic_sequence(profile="figure8", duration_s=6.0, seed=3))
+    return in_memory(make_synthetic_sequence(profile="figure8", duration_s=6.0, seed=3))
 
 
 def _cfg(sequential: bool):

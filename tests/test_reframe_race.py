@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import in_memory
 
 from datasets.synth.generator import euroc_like_calibration
 from slam.config import FrontendConfig, preset_config
@@ -25,27 +26,12 @@ from slam.runtime.wiring import run_slam
 Z = np.array([0.0, 0.0, 1.0])
 
 
-def _in_memory(seq):
-    from datasets.memory import InMemorySequence
-
-    frames = list(seq.iter_frames())
-    return InMemorySequence(
-        seq.name,
-        seq.calibration,
-        seq.frame_times_ns(),
-        [f.left for f in frames],
-        [f.right for f in frames],
-        seq.imu(),
-        seq.ground_truth,
-    )
-
-
 @pytest.fixture(scope="module")
 def still_start_seq():
     """2 s still (the back end initialises at its third keyframe, 1 s in), then moving."""
     from datasets.synth import make_synthetic_sequence
 
-    return _in_memory(make_synthetic_sequence(profile="aggressive", duration_s=2.5, seed=3))
+    return in_memory(make_synthetic_sequence(profile="aggressive", duration_s=2.5, seed=3))
 
 
 def _tilt_deg(est_world_from_body: np.ndarray, gt_world_from_body: np.ndarray) -> np.ndarray:
