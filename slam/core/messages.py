@@ -133,6 +133,7 @@ class TrackingResult:
     reason: str = ""  # why tracking was lost / what happened, for the log
     cpu_ms: float = 0.0  # front-end thread CPU time of this frame (latency_ms minus waiting)
     runqueue_ms: float = -1.0  # of the waiting, runnable without a CPU (-1: OS does not say)
+    in_backend_world: bool = False  # False: the VO frame, before the back end's initialisation
 
 
 @dataclass(frozen=True)
@@ -364,12 +365,3 @@ class ReaderEnd:
     """The reader process reached the end of the sequence."""
 
     warnings: tuple[str, ...]
-
-
-@dataclass(frozen=True)
-class ViewerText:
-    """A line for the viewer's event log."""
-
-    t_ns: int
-    text: str
-    level: str = "INFO"

@@ -232,6 +232,7 @@ class FrontEnd:
             reason=kw.pop("reason", ""),
             cpu_ms=(thread_cpu_s() - self._cpu_start_s) * 1e3,
             runqueue_ms=runqueue_ms,
+            in_backend_world=self.reframed,
         )
 
     def _lose(self, frame: StereoFrame, t_start: float, reason: str) -> TrackingResult:

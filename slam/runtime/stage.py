@@ -11,7 +11,6 @@ time order: deterministic, for tests and debugging. Both modes run the same code
 from __future__ import annotations
 
 import logging
-import os
 import queue
 import threading
 import time
@@ -55,7 +54,6 @@ class Stage(ABC):
         self.error: StageError | None = None
         self.dropped = 0
         self.ended = threading.Event()
-        self.nice = 0  # > 0: lower scheduling priority of this stage's thread (background work)
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
 
@@ -158,13 +156,6 @@ class Stage(ABC):
         self.ended.set()
 
     def _loop(self) -> None:
-        if self.nice:
-            # Linux threads are scheduled like processes: a background stage yields the CPU to
-            # the front end thread on a loaded machine (errors: keep normal priority).
-            try:
-                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), self.nice)
-            except (OSError, AttributeError):
-                pass
         while True:
             msg = self.queue.get()
             if isinstance(msg, EndOfStream):

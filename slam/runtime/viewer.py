@@ -41,7 +41,6 @@ from slam.core.messages import (
     LoopCorrection,
     MeshSnapshot,
     TrackingResult,
-    ViewerText,
 )
 from slam.core.trajectory import Trajectory
 from slam.runtime.stage import Stage
@@ -348,20 +347,11 @@ class RerunStage(Stage):
                 self.rec.log("log", self.rr.TextLog(text))
             if est is None:
                 return
-            if est.initialized and not self.seen_initialized:
-                # The back end moved everything into its gravity-aligned world: start the
-                # estimated path afresh and re-anchor the ground truth at the next pose.
-                self.seen_initialized = True
-                self.positions = []
-                self.gt_logged = False
             if len(est.landmark_positions_world):
                 self.rec.log(
                     "world/landmarks/optimised",
                     self.rr.Points3D(est.landmark_positions_world, colors=[0, 200, 90], radii=0.02),
                 )
-        elif isinstance(msg, ViewerText):
-            self._time(msg.t_ns)
-            self.rec.log("log", self.rr.TextLog(msg.text, level=msg.level))
         elif isinstance(msg, LoopCorrection):
             from slam.loop.viz import log_loop_correction
 
@@ -379,6 +369,13 @@ class RerunStage(Stage):
         rr = self.rr
         self._time(res.t_ns)
         self.n_results += 1
+        if res.in_backend_world and not self.seen_initialized:
+            # The front end moved into the back end's gravity-aligned world (results come in
+            # order; an estimate may arrive before the first result in that world): start the
+            # estimated path afresh and re-anchor the ground truth at this pose.
+            self.seen_initialized = True
+            self.positions = []
+            self.gt_logged = False
         if res.state != self.last_state or res.reason:
             if res.state != self.last_state:
                 level = "WARN" if res.state == "lost" else "INFO"
