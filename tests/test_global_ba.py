@@ -133,3 +133,29 @@ def test_fuse_is_transitive() -> None:
     ids = np.array([1, 2, 3, 4, 5, 9])
     out = _fuse(ids, [(5, 3), (3, 9), (2, 1)])
     assert out.tolist() == [1, 1, 3, 4, 3, 3]
+
+
+def test_time_budget_keeps_the_estimate_so_far(loop_world) -> None:
+    """A spent budget stops after one iteration and skips the outlier round; the estimate is
+    still an improvement. A generous budget gives the unbounded result."""
+    calib, obs, true, odom, edges, pairs, t_ns = loop_world
+    poses = {k: odom[k] for k in range(len(odom))}
+
+    def ate(res) -> float:  # type: ignore[no-untyped-def]
+        return ate_se3_rmse_m(
+            np.array([res.world_from_body[k][:3, 3] for k in poses]), true[:, :3, 3]
+        )
+
+    free = global_bundle_adjustment(calib, obs, poses, edges, pairs, 0, t_ns, GlobalBaParams())
+    spent = global_bundle_adjustment(
+        calib, obs, poses, edges, pairs, 0, t_ns, GlobalBaParams(time_budget_s=0.0)
+    )
+    ample = global_bundle_adjustment(
+        calib, obs, poses, edges, pairs, 0, t_ns, GlobalBaParams(time_budget_s=600.0)
+    )
+    assert free is not None and spent is not None and ample is not None
+    assert spent.time_boxed and spent.iterations == 1
+    assert not free.time_boxed and not ample.time_boxed and free.iterations > 1
+    assert spent.rms_px_after < spent.rms_px_before
+    assert ate(spent) < ate_se3_rmse_m(odom[:, :3, 3], true[:, :3, 3])
+    assert abs(ate(ample) - ate(free)) < 1e-4

@@ -695,6 +695,12 @@ class LoopCloser:
             fusion_pairs = len({(qk, mk) for qk, _, mk, _ in found})
             pairs += found
         fusion_s = time.perf_counter() - t0
+        budget_s = None
+        if c.global_ba_budget_fraction > 0:
+            span_s = (
+                max(self.t_ns_of[k] for k in nodes) - min(self.t_ns_of[k] for k in nodes)
+            ) * 1e-9
+            budget_s = max(c.global_ba_budget_fraction * span_s - fusion_s, 0.0)
         result = global_bundle_adjustment(
             self.calib,
             self.observations,
@@ -706,6 +712,7 @@ class LoopCloser:
             params=GlobalBaParams(
                 pixel_sigma_px=c.global_ba_pixel_sigma_px,
                 odometry_sigma_scale=c.global_ba_odometry_sigma_scale,
+                time_budget_s=budget_s,
             ),
         )
         if result is None:

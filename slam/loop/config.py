@@ -91,6 +91,11 @@ class LoopClosureConfig:
     """At the end of a run with loops, re-estimate every keyframe and landmark together, with
     the landmarks the loops matched fused (``slam.loop.global_ba``): the loop-closed trajectory
     then no longer inherits the first pass's odometry error."""
+    global_ba_budget_fraction: float = bounded(0.1, ge=0, le=10)
+    """Time budget of the global adjustment (its fusion search included), as a fraction of the
+    time its keyframes span; past it the adjustment keeps the estimate so far (stats.json
+    ``loop_closure.global_ba.time_boxed``). 0: no limit. Accuracy and time with and without:
+    BENCHMARKS.md."""
     global_ba_pixel_sigma_px: float = bounded(1.0, gt=0)
     """Reprojection sigma of the global adjustment, pixels."""
     global_ba_odometry_sigma_scale: float = bounded(0.3, ge=0)

@@ -69,6 +69,10 @@ class GlobalBaParams:
     """Initial guesses farther than this from their first keyframe are left out."""
     outlier_px: float = 3.0
     max_iterations: int = 15
+    time_budget_s: float | None = None
+    """Stop iterating once the adjustment has run this long (from its start), keeping the
+    estimate so far (at least one iteration; the outlier round is then skipped). None: no
+    limit."""
     min_observations: int = 20
     """Every keyframe needs this many observations of kept landmarks, else there is no
     adjustment (None): a keyframe held only by its odometry edges could be dragged anywhere."""
@@ -111,6 +115,8 @@ class GlobalBaResult:
     """Keyframe pairs of different passes matched to find more landmarks to fuse (the
     caller's fusion search; 0 without one)."""
     fusion_seconds: float = 0.0
+    time_boxed: bool = False
+    """The time budget stopped the iterations before convergence."""
 
     def summary(self) -> dict[str, float | int]:
         return {
@@ -125,6 +131,7 @@ class GlobalBaResult:
             "seconds": round(self.seconds, 3),
             "fusion_keyframe_pairs": self.fusion_keyframe_pairs,
             "fusion_seconds": round(self.fusion_seconds, 3),
+            "time_boxed": self.time_boxed,
         }
 
 
@@ -341,13 +348,22 @@ def global_bundle_adjustment(
     lm_params.setMaxIterations(p.max_iterations)
     iterations = 0
     result = values
+    deadline = None if p.time_budget_s is None else t0 + p.time_budget_s
+    time_boxed = False
     for _ in range(2):  # solve; drop outliers; solve again
         optimizer = gtsam.LevenbergMarquardtOptimizer(build(mask_l, mask_r), result, lm_params)
-        result = optimizer.optimize()
-        iterations += int(optimizer.iterations())
+        if deadline is None:
+            result = optimizer.optimize()
+            iterations += int(optimizer.iterations())
+        else:
+            time_boxed = _iterate_until(optimizer, lm_params, deadline)
+            result = optimizer.values()
+            iterations += int(optimizer.iterations())
         e_l, e_r = errors(result, mask_l, mask_r)
         mask_l &= e_l < p.outlier_px
         mask_r &= e_r < p.outlier_px
+        if time_boxed:
+            break
     e_l, e_r = errors(result, mask_l, mask_r)
     finite = np.concatenate([e_l[np.isfinite(e_l)], e_r[np.isfinite(e_r)]])
     rms_after = float(np.sqrt(np.mean(finite**2))) if len(finite) else 0.0
@@ -362,7 +378,33 @@ def global_bundle_adjustment(
         rms_px_after=rms_after,
         iterations=iterations,
         seconds=time.perf_counter() - t0,
+        time_boxed=time_boxed,
     )
+
+
+def _iterate_until(
+    optimizer: gtsam.LevenbergMarquardtOptimizer,
+    params: gtsam.LevenbergMarquardtParams,
+    deadline: float,
+) -> bool:
+    """Levenberg-Marquardt iterations until convergence (GTSAM's own test), the iteration
+    limit or ``deadline`` (``time.perf_counter``); True when the deadline stopped it."""
+    error = optimizer.error()
+    for _ in range(params.getMaxIterations()):
+        optimizer.iterate()
+        new_error = optimizer.error()
+        if gtsam.checkConvergence(
+            params.getRelativeErrorTol(),
+            params.getAbsoluteErrorTol(),
+            params.getErrorTol(),
+            error,
+            new_error,
+        ):
+            return False
+        error = new_error
+        if time.perf_counter() > deadline:
+            return True
+    return False
 
 
 __all__ = [
