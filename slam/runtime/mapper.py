@@ -227,6 +227,7 @@ class MapperStage(ProcessStage):
             else {}
         )
         if self.error is None and not self.final_seen.is_set():
+            self.begin_end()
             self.send(MapFinish(poses, None if mesh_path is None else str(mesh_path)))
             deadline = time.monotonic() + self.end_timeout_s
             while not self._summary_seen.wait(0.1) and time.monotonic() < deadline:

@@ -22,8 +22,8 @@ ROLE_NICE: dict[str, int] = {
     "frontend": 0,
     "reader": 0,
     "backend": 2,
-    "loop": 5,
-    "mapper": 10,
+    "loop": 10,
+    "mapper": 15,
 }
 """Nice level added to each role's process (the front end's is the main process's)."""
 
