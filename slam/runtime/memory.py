@@ -3,7 +3,9 @@
 ``ru_maxrss`` gives one process's peak only (and ``RUSAGE_CHILDREN`` only children that have
 ended and been waited for), so a sampler thread reads the tree's resident sizes every
 ``period_s`` with psutil: each process's own peak comes from the kernel (``VmHWM``, exact),
-the total at its peak from the samples (the tree's sum can peak between two samples).
+the total at its peak from the samples (the tree's sum can peak between two samples). Resident
+sizes count pages shared between processes (the reader's image ring, a worker just forked) in
+each of them.
 """
 
 from __future__ import annotations
@@ -62,9 +64,12 @@ class TreeMemory:
             except psutil.Error:
                 continue
             total += rss_mb
-            peak = _peak_mb(proc) or rss_mb
+            peak = max(_peak_mb(proc) or 0.0, rss_mb)
             with self._lock:
-                self.peak_by_process[proc.pid] = (name, max(peak, rss_mb))
+                _, before = self.peak_by_process.get(proc.pid, (name, 0.0))
+                # max over samples too: a spawned worker's peak restarts at its exec, while
+                # its sample just before (the forked copy of this process) counted in a total
+                self.peak_by_process[proc.pid] = (name, max(peak, before))
         with self._lock:
             self.total_peak_mb = max(self.total_peak_mb, total)
 
