@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import signal
 import threading
+import time
 from typing import Any
 
 import pytest
@@ -47,6 +48,9 @@ def _priority_of(role: str, idle: bool) -> tuple[int, int, int, bool]:
     stage = _Probe(role, idle)
     stage.start()
     stage.put("report")
+    deadline = time.monotonic() + 60
+    while not stage.got and time.monotonic() < deadline:  # answered by the live thread: the
+        time.sleep(0.05)  # end of the run would hand the backlog to the full-priority thread
     stage.close()
     stage.join(60)
     assert stage.error is None and stage.final_seen.is_set()
@@ -71,3 +75,19 @@ def test_data_path_and_back_end_never_idle() -> None:
         policy, thread_policy, nice, _ = _priority_of(role, idle=True)
         assert policy == os.SCHED_OTHER and thread_policy == os.SCHED_OTHER
         assert nice == min(base + ROLE_NICE[role], 19)
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="SCHED_IDLE is Linux-only")
+def test_end_of_run_work_runs_at_full_priority() -> None:
+    """What the worker does once the run is over (its backlog, ``finish``) runs in its main
+    thread, which kept the process's own priority."""
+    stage = _Probe("mapper", idle=True)
+    stage.start()
+    stage.begin_end()
+    stage.put("report")
+    stage.close()
+    stage.join(60)
+    assert stage.error is None and stage.final_seen.is_set()
+    policy, _, nice, _ = stage.got[0]
+    assert policy == os.SCHED_OTHER
+    assert nice == os.getpriority(os.PRIO_PROCESS, 0)

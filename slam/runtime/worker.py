@@ -114,6 +114,8 @@ def _worker_main(
             return True
         return False
 
+    handed_over: list[Any] = []  # a message taken after the end began: the main thread's
+
     def serve() -> None:
         apply_role(role, idle)
         while not ending.is_set():
@@ -123,12 +125,17 @@ def _worker_main(
                 if main_process_gone():
                     return
                 continue
+            if ending.is_set():
+                handed_over.append(msg)
+                return
             if step(msg):
                 return
 
     live = threading.Thread(target=serve, name="live")
     live.start()
     live.join()
+    if handed_over:
+        step(handed_over[0])
     while not ended and not failed:  # the end of the run: the backlog, at full priority
         step(receive(inbox))
     if failed:
