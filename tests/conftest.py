@@ -43,3 +43,13 @@ def in_memory(seq):  # type: ignore[no-untyped-def]
         seq.imu(),
         seq.ground_truth,
     )
+
+
+def synth_mcap(path: Path, profile: str, duration_s: float) -> Path:
+    """A synthetic sequence written by `slam synth` (in this process)."""
+    from tools.cli import main as slam
+
+    assert (
+        slam(["synth", str(path), "--profile", profile, "--duration", str(duration_s), "-q"]) == 0
+    )
+    return path

@@ -8,16 +8,14 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import PROJECT_ROOT
+from conftest import PROJECT_ROOT, synth_mcap
 
 from tools.cli import main as slam
 
 
 @pytest.fixture(scope="module")
 def seq_path(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("seq") / "fig8.mcap"
-    assert slam(["synth", str(path), "--profile", "figure8", "--duration", "4", "-q"]) == 0
-    return path
+    return synth_mcap(tmp_path_factory.mktemp("seq") / "fig8.mcap", "figure8", 4)
 
 
 @pytest.mark.parametrize("preset", ["stereo-vo", "euroc-stereo-imu"])

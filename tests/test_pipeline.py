@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import PROJECT_ROOT, in_memory
+from conftest import PROJECT_ROOT, in_memory, synth_mcap
 
 from slam.config import preset_config
 from slam.runtime.wiring import run_slam
@@ -115,15 +115,7 @@ def test_stage_error_is_reported_with_stage_name_and_outputs_saved(
 
 @pytest.fixture(scope="module")
 def figure8_mcap(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("seq") / "seq.mcap"
-    subprocess.run(
-        [sys.executable, "-m", "tools.cli", "synth", str(path), "--profile", "figure8"]
-        + ["--duration", "14"],
-        check=True,
-        cwd=PROJECT_ROOT,
-        capture_output=True,
-    )
-    return path
+    return synth_mcap(tmp_path_factory.mktemp("seq") / "seq.mcap", "figure8", 14)
 
 
 def _tum_rows(path: Path) -> np.ndarray:

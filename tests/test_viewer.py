@@ -13,25 +13,17 @@ from typing import Any
 
 import psutil
 import pytest
-from conftest import PROJECT_ROOT
+from conftest import PROJECT_ROOT, synth_mcap
 
 from slam.config import preset_config
 
 
 @pytest.fixture(scope="module")
 def seq_mcap(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("seq") / "seq.mcap"
-    subprocess.run(
-        [sys.executable, "-m", "tools.cli", "synth", str(path), "--profile", "figure8"]
-        + ["--duration", "4"],
-        check=True,
-        cwd=PROJECT_ROOT,
-        capture_output=True,
-    )
-    return path
+    return synth_mcap(tmp_path_factory.mktemp("seq") / "seq.mcap", "figure8", 4)
 
 
-def _slam_run(seq: Path, out: Path, *extra: str, env: dict[str, str] | None = None) -> list[str]:
+def _slam_run(seq: Path, out: Path, *extra: str) -> list[str]:
     return [sys.executable, "-m", "tools.cli", "run", str(seq), "--out", str(out)] + [
         "--config",
         "stereo-vo",

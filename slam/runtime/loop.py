@@ -242,10 +242,6 @@ class LoopClosureStage(ProcessStage):
             self.send(LoopEnd(frozenset(unsmoothed), self.refresher.refreshed(full=True)))
         self.end_worker()
 
-    def smoothed(self, kid: int) -> bool:
-        """Whether the back end has estimated keyframe ``kid`` (as far as this stage heard)."""
-        return self.odometry.smoothed(kid)
-
     # -- outputs (complete once the stage has ended) ----------------------------------------
     def keyframe_corrections(self) -> dict[int, np.ndarray]:
         """Per keyframe id: corrected pose @ inverse(odometry pose), from the worker's end."""

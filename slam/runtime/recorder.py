@@ -110,7 +110,13 @@ class Recorder:
             out["frontend_frame_runqueue"] = latency_summary(rq)
         return out
 
-    def snapshot(self) -> tuple[Trajectory, Trajectory, list[float]]:
+    def frontend_latencies_ms(self) -> list[float]:
+        """The front end's latency of every frame so far."""
         with self._lock:
-            poses, kfs, lat = list(self.poses), list(self.keyframes), list(self.frontend_latency_ms)
-        return trajectory_from_poses(poses), trajectory_from_poses(kfs), lat
+            return list(self.frontend_latency_ms)
+
+    def snapshot(self) -> tuple[Trajectory, Trajectory]:
+        """Every frame's pose and every keyframe's, as recorded so far."""
+        with self._lock:
+            poses, kfs = list(self.poses), list(self.keyframes)
+        return trajectory_from_poses(poses), trajectory_from_poses(kfs)

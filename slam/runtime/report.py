@@ -10,6 +10,7 @@ reported beside it (``end_of_run_s`` and its parts), never folded in.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -27,7 +28,7 @@ from slam.runtime.end_of_run import (
 from slam.runtime.memory import TreeMemory
 from slam.runtime.outputs import write_run_outputs
 from slam.runtime.player import PlayState, real_time_factor
-from slam.runtime.stage import StageError
+from slam.runtime.stage import Stage, StageError
 from slam.runtime.viewer import ViewerSession
 
 if TYPE_CHECKING:
@@ -63,14 +64,14 @@ class RunResult:
     session: ViewerSession | None = None  # the viewer, for serving the final map after the run
 
 
-def _smoothed(p: Pipeline) -> Any:
+def _smoothed(p: Pipeline) -> Callable[[int], bool]:
     """Whether the back end estimated a keyframe (always, without a back end)."""
     backend = p.backend
     return lambda kid: backend is None or kid in backend.keyframe_poses
 
 
 def _trajectories(p: Pipeline) -> tuple[Trajectory, Trajectory, Trajectory | None]:
-    traj, kfs, _ = p.recorder.snapshot()
+    traj, kfs = p.recorder.snapshot()
     kfs = keyframe_trajectory(kfs, p.backend, p.recorder)
     closed = (
         None if p.loop is None else loop_closed_trajectory(traj, p.loop, _smoothed(p), p.recorder)
@@ -78,157 +79,151 @@ def _trajectories(p: Pipeline) -> tuple[Trajectory, Trajectory, Trajectory | Non
     return traj, kfs, closed
 
 
-def make_stats(
-    p: Pipeline,
-    seq: Sequence,
-    cfg: SlamConfig,
-    state: PlayState,
-    times: RunTimes,
-    memory: TreeMemory,
-    control: RunControl,
-    error: StageError | None,
-) -> dict[str, Any]:
-    now = time.perf_counter()
-    _, _, lat = p.recorder.snapshot()
-    fe = p.frontend.frontend.stats
-    tracking_s = times.tracking_s(now)
-    end_s = None if times.tracking_end is None else (times.end or now) - times.tracking_end
-    roles = {pid: s.name for s in p.stages if (pid := getattr(s, "worker_pid", None))}
-    mem = memory.summary(roles)
-    loop_stats = None if p.loop is None else p.loop.stats()
-    return {
-        "sequence": seq.name,
-        "preset": cfg.preset,
-        "frames_in": state.frames_in,
-        "frames_processed": fe.frames,
-        "frames_tracked": fe.tracked,
-        "frames_dropped": state.frames_dropped,
-        "frames_lost": fe.lost_frames,
-        "tracking_losses": fe.tracking_losses,
-        "map_segments": fe.segments,
-        "keyframes": fe.keyframes,
-        "sequence_duration_s": state.sequence_s,
-        "real_time_factor": real_time_factor(state.sequence_s, tracking_s),
-        "tracking_wall_s": tracking_s,
-        "end_of_run_s": end_s,
-        "end_of_run_parts_s": dict(times.parts_s),
-        "wall_time_s": (times.end or now) - times.t_wall0,
-        "speed": cfg.player.speed,
-        "sequential": cfg.player.sequential,
-        "latency": {
-            "frontend_frame": latency_summary(lat),
-            **p.recorder.frontend_breakdown(),
-            **{f"stage_{s.name}": s.latency_stats() for s in p.stages},
-        },
-        "peak_rss_mb": mem["total_peak_mb"],
-        "memory": mem,
-        "loop_closure": loop_stats,
-        "mapping": None if p.mapper is None else p.mapper.stats(),
-        "relocalisations": fe.relocalisations,
-        "imu_bridged_losses": fe.imu_bridged,
-        "track_refits": {"attempted": fe.track_refits, "kept": fe.track_refits_kept},
-        "backend": None
-        if p.backend is None
-        else {
-            "mode": "process" if p.backend.use_process else "in-process",
-            "update": p.backend.update_stats(),
-            "initialised_after_s": p.recorder.initialised_after_s,
-            **p.backend.final_stats,
-        },
-        "events": [{"t_ns": t, "event": e} for t, e in sorted(fe.state_log + p.recorder.events)],
-        "sequence_warnings": list(seq.warnings),
-        "interrupted": control.stop.is_set(),
-        "stopped_by": control.signal_name or None,
-        "stages_timed_out": [s.name for s in p.stages if getattr(s, "timed_out", False)],
-        "error": str(error) if error else None,
-    }
-
-
-def write_outputs(
-    out_dir: Path,
-    p: Pipeline,
-    seq: Sequence,
-    cfg: SlamConfig,
-    state: PlayState,
-    times: RunTimes,
-    memory: TreeMemory,
-    control: RunControl,
-    final: bool,
-    error: StageError | None = None,
-) -> None:
-    """Write every output for what has been processed so far (atomically, file by file)."""
-    traj, kfs, closed = _trajectories(p)
-    extra = {} if closed is None else {"trajectory_loop_closed": closed}
-    stats = make_stats(p, seq, cfg, state, times, memory, control, error)
-    write_run_outputs(out_dir, traj, kfs, stats, config_to_yaml(cfg), extra)
-
-
-def _end_stage(stage: Any, control: RunControl, times: RunTimes) -> None:
+def _end_stage(stage: Stage, control: RunControl) -> float:
+    """Close ``stage`` and wait for it (until ``control.abandon``); the seconds it took."""
     t0 = time.perf_counter()
     stage.close()
     while not stage.join(timeout=0.2):
         if control.abandon.is_set():
             stage.abort()
             break
-    times.parts_s[stage.name] = round(time.perf_counter() - t0, 3)
+    return round(time.perf_counter() - t0, 3)
 
 
-def end_run(
-    p: Pipeline,
-    seq: Sequence,
-    cfg: SlamConfig,
-    out_dir: Path | None,
-    state: PlayState,
-    times: RunTimes,
-    memory: TreeMemory,
-    control: RunControl,
-    progress: bool,
-) -> RunResult:
-    """End every stage in wiring order (bounded), do the end-of-run work, write the outputs."""
-    interrupted = control.stop.is_set()
-    failed = state.error or next((s.error for s in p.stages if s.error is not None), None)
-    if interrupted:
-        for s in p.stages:
-            s.interrupt()
-    _end_stage(p.frontend, control, times)
-    times.tracking_end = time.perf_counter()
-    times.parts_s.clear()
-    if p.backend is not None:
-        _end_stage(p.backend, control, times)
-        p.frontend.finish_frontend()  # a back-end initialisation published after the last frame
-    if p.loop is not None:
-        if progress and not interrupted:
-            print("loop closure: global adjustment ...", flush=True)
-        _end_stage(p.loop, control, times)
-    traj, kfs, closed = _trajectories(p)
-    if p.mapper is not None:
-        t0 = time.perf_counter()
-        final = None
-        if not interrupted and p.mapper.error is None:
-            final = final_keyframe_poses(kfs, p.loop, closed, _smoothed(p), p.recorder)
-            if progress:
-                print("dense mapping: final re-integration and mesh ...", flush=True)
-        p.mapper.finish(final, None if out_dir is None else Path(out_dir) / "mesh.ply")
-        _end_stage(p.mapper, control, times)
-        times.parts_s["mapper"] = round(time.perf_counter() - t0, 3)
-    if p.viewer is not None:
-        p.viewer.close(timeout_s=5.0)
-        p.viewer.join(timeout=5.0)  # a stuck viewer thread is a daemon: the run ends anyway
-    error = failed or next((s.error for s in p.stages if s.error is not None), None)
-    times.end = time.perf_counter()
-    memory.stop()
-    stats = make_stats(p, seq, cfg, state, times, memory, control, error)
-    if out_dir is not None:
+@dataclass
+class Run:
+    """One run being played: its pipeline and everything its report is made of."""
+
+    p: Pipeline
+    seq: Sequence
+    cfg: SlamConfig
+    out_dir: Path | None
+    control: RunControl
+    memory: TreeMemory
+    state: PlayState = field(default_factory=PlayState)
+    times: RunTimes = field(default_factory=lambda: RunTimes(t_wall0=time.perf_counter()))
+
+    def stats(self, error: StageError | None) -> dict[str, Any]:
+        """stats.json as of now."""
+        p, state, times, cfg = self.p, self.state, self.times, self.cfg
+        now = time.perf_counter()
+        fe = p.frontend.frontend.stats
+        tracking_s = times.tracking_s(now)
+        end_s = None if times.tracking_end is None else (times.end or now) - times.tracking_end
+        roles = {pid: s.name for s in p.stages if (pid := getattr(s, "worker_pid", None))}
+        mem = self.memory.summary(roles)
+        return {
+            "sequence": self.seq.name,
+            "preset": cfg.preset,
+            "frames_in": state.frames_in,
+            "frames_processed": fe.frames,
+            "frames_tracked": fe.tracked,
+            "frames_dropped": state.frames_dropped,
+            "frames_lost": fe.lost_frames,
+            "tracking_losses": fe.tracking_losses,
+            "map_segments": fe.segments,
+            "keyframes": fe.keyframes,
+            "sequence_duration_s": state.sequence_s,
+            "real_time_factor": real_time_factor(state.sequence_s, tracking_s),
+            "tracking_wall_s": tracking_s,
+            "end_of_run_s": end_s,
+            "end_of_run_parts_s": dict(times.parts_s),
+            "wall_time_s": (times.end or now) - times.t_wall0,
+            "speed": cfg.player.speed,
+            "sequential": cfg.player.sequential,
+            "latency": {
+                "frontend_frame": latency_summary(p.recorder.frontend_latencies_ms()),
+                **p.recorder.frontend_breakdown(),
+                **{f"stage_{s.name}": s.latency_stats() for s in p.stages},
+            },
+            "peak_rss_mb": mem["total_peak_mb"],
+            "memory": mem,
+            "loop_closure": None if p.loop is None else p.loop.stats(),
+            "mapping": None if p.mapper is None else p.mapper.stats(),
+            "relocalisations": fe.relocalisations,
+            "imu_bridged_losses": fe.imu_bridged,
+            "track_refits": {"attempted": fe.track_refits, "kept": fe.track_refits_kept},
+            "backend": None
+            if p.backend is None
+            else {
+                "mode": "process" if p.backend.use_process else "in-process",
+                "update": p.backend.update_stats(),
+                "initialised_after_s": p.recorder.initialised_after_s,
+                **p.backend.final_stats,
+            },
+            "events": [
+                {"t_ns": t, "event": e} for t, e in sorted(fe.state_log + p.recorder.events)
+            ],
+            "sequence_warnings": list(self.seq.warnings),
+            "interrupted": self.control.stop.is_set(),
+            "stopped_by": self.control.signal_name or None,
+            "stages_timed_out": [s.name for s in p.stages if getattr(s, "timed_out", False)],
+            "error": str(error) if error else None,
+        }
+
+    def write(
+        self,
+        traj: Trajectory,
+        kfs: Trajectory,
+        closed: Trajectory | None,
+        stats: dict[str, Any],
+    ) -> None:
+        """Write every output (atomically, file by file); nothing without an output folder."""
+        if self.out_dir is None:
+            return
         extra = {} if closed is None else {"trajectory_loop_closed": closed}
-        write_run_outputs(out_dir, traj, kfs, stats, config_to_yaml(cfg), extra)
-    return RunResult(
-        out_dir,
-        traj,
-        kfs,
-        stats,
-        interrupted,
-        error,
-        list(seq.warnings),
-        closed,
-        control.exit_code,
-    )
+        write_run_outputs(self.out_dir, traj, kfs, stats, config_to_yaml(self.cfg), extra)
+
+    def flush(self) -> None:
+        """The outputs for what has been processed so far (every few seconds of a run)."""
+        if self.out_dir is not None:
+            self.write(*_trajectories(self.p), self.stats(None))
+
+    def end(self, progress: bool) -> RunResult:
+        """End every stage in wiring order (bounded), do the end-of-run work, write the
+        outputs."""
+        p, control, times = self.p, self.control, self.times
+        interrupted = control.stop.is_set()
+        if interrupted:
+            for s in p.stages:
+                s.interrupt()
+        _end_stage(p.frontend, control)
+        times.tracking_end = time.perf_counter()
+        if p.backend is not None:
+            times.parts_s["backend"] = _end_stage(p.backend, control)
+            p.frontend.finish_frontend()  # a back-end initialisation after the last frame
+        if p.loop is not None:
+            if progress and not interrupted:
+                print("loop closure: global adjustment ...", flush=True)
+            times.parts_s["loop"] = _end_stage(p.loop, control)
+        traj, kfs, closed = _trajectories(p)
+        if p.mapper is not None:
+            t0 = time.perf_counter()
+            final = None
+            if not interrupted and p.mapper.error is None:
+                final = final_keyframe_poses(kfs, p.loop, closed, _smoothed(p), p.recorder)
+                if progress:
+                    print("dense mapping: final re-integration and mesh ...", flush=True)
+            mesh = None if self.out_dir is None else Path(self.out_dir) / "mesh.ply"
+            p.mapper.finish(final, mesh)
+            _end_stage(p.mapper, control)
+            times.parts_s["mapper"] = round(time.perf_counter() - t0, 3)
+        if p.viewer is not None:
+            p.viewer.close(timeout_s=5.0)
+            p.viewer.join(timeout=5.0)  # a stuck viewer thread is a daemon: the run ends anyway
+        error = self.state.error or next((s.error for s in p.stages if s.error is not None), None)
+        times.end = time.perf_counter()
+        self.memory.stop()
+        stats = self.stats(error)
+        self.write(traj, kfs, closed, stats)
+        return RunResult(
+            self.out_dir,
+            traj,
+            kfs,
+            stats,
+            interrupted,
+            error,
+            list(self.seq.warnings),
+            closed,
+            control.exit_code,
+        )

@@ -20,7 +20,6 @@ after Ctrl-C, SIGTERM or a stage failure (``slam.runtime.control``).
 from __future__ import annotations
 
 import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,10 +42,10 @@ from slam.runtime.frontend import FrontendStage
 from slam.runtime.loop import LoopClosureStage
 from slam.runtime.mapper import MapperStage
 from slam.runtime.memory import TreeMemory
-from slam.runtime.player import PlayState, play
+from slam.runtime.player import play
 from slam.runtime.reader import prefetched_messages
 from slam.runtime.recorder import Recorder
-from slam.runtime.report import RunResult, RunTimes, end_run, write_outputs
+from slam.runtime.report import Run, RunResult
 from slam.runtime.stage import Latest, Stage
 from slam.runtime.viewer import RerunStage, ViewerSession, open_recording
 
@@ -172,8 +171,7 @@ def _run(
         sys.setswitchinterval(cfg.player.gil_switch_interval_ms * 1e-3)  # restored at the end
     for s in p.stages:
         s.start()
-    state = PlayState()
-    times = RunTimes(t_wall0=time.perf_counter())
+    run = Run(p, seq, cfg, out_dir, control, memory)
     total = (
         seq.num_frames if not cfg.player.max_frames else min(cfg.player.max_frames, seq.num_frames)
     )
@@ -189,11 +187,6 @@ def _run(
         if threaded and cfg.player.reader_process
         else iter(seq.messages())
     )
-
-    def flush() -> None:
-        if out_dir is not None:
-            write_outputs(out_dir, p, seq, cfg, state, times, memory, control, final=False)
-
     try:
         play(
             messages,
@@ -201,15 +194,15 @@ def _run(
             p.imu_buffer,
             p.imu_consumers,
             p.stages,
-            state,
+            run.state,
             control,
             speed=cfg.player.speed,
             sequential=cfg.player.sequential,
             max_frames=cfg.player.max_frames,
-            t_wall0=times.t_wall0,
+            t_wall0=run.times.t_wall0,
             bar=bar,
             last_state=lambda: p.recorder.last_state,
-            every_few_seconds=flush,
+            every_few_seconds=run.flush,
             flush_every_s=FLUSH_EVERY_S,
         )
     except KeyboardInterrupt:  # a run outside the main thread, or before the handler
@@ -217,7 +210,7 @@ def _run(
     finally:
         if bar is not None:
             bar.close()
-        result = end_run(p, seq, cfg, out_dir, state, times, memory, control, progress)
+        result = run.end(progress)
         sys.setswitchinterval(switch_interval_s)
         if session is not None:
             session.close()
