@@ -7,7 +7,8 @@ Layout: ``mav0/cam0/{data.csv,data/*.png,sensor.yaml}``, ``mav0/cam1/...``,
 ``imu_from_cam = inv(T_BS_imu) @ T_BS_cam`` and ground truth is moved to the IMU the same way.
 
 Images are loaded lazily (``cv2.imread(..., IMREAD_GRAYSCALE)``); every listed file is checked to
-exist when the folder is opened, so a missing image is reported up front, by name.
+exist when the folder is opened: a frame with a missing image (left or right) is skipped, counted
+and named in a warning (``strict=True``: refused, by name).
 Timestamps are parsed as integers (a float64 cannot hold 19-digit nanoseconds exactly).
 """
 
@@ -180,6 +181,7 @@ class EurocSequence(Sequence):
         *,
         gt_path: str | os.PathLike[str] | None = None,
         pair_tolerance_ns: int = 2_000_000,
+        strict: bool = False,
     ) -> None:
         mav0 = find_mav0(path)
         if mav0 is None:
@@ -227,11 +229,9 @@ class EurocSequence(Sequence):
             self._t_ns = cam_times[0]
             self._left = cam_files[0]
             self._right = None
-        for f in self._left + (self._right or []):
-            if not f.is_file():
-                raise InputError(
-                    f"image file missing: {f} (listed in {f.parent.parent / 'data.csv'})"
-                )
+        missing = self._drop_missing_images(strict)
+        if missing:
+            warnings.append(missing)
 
         if (imu_dir / "data.csv").is_file():
             raw = read_euroc_imu(imu_dir / "data.csv")
@@ -276,6 +276,47 @@ class EurocSequence(Sequence):
         )
         for w in warnings:
             self.warn(w)
+
+    def _drop_missing_images(self, strict: bool) -> str | None:
+        """Skip the frames whose left or right image file is missing; a warning naming them
+        (None when all are there). ``strict``: raise instead."""
+        ok = np.array(
+            [
+                self._left[i].is_file() and (self._right is None or self._right[i].is_file())
+                for i in range(len(self._left))
+            ],
+            dtype=bool,
+        )
+        if ok.all():
+            return None
+        absent = [
+            f
+            for i in np.nonzero(~ok)[0]
+            for f in (self._left[i], *([self._right[i]] if self._right is not None else []))
+            if not f.is_file()
+        ]
+        listed = absent[0].parent.parent / "data.csv"
+        if strict:
+            raise InputError(
+                f"image file missing: {absent[0]} (listed in {listed}); run without --strict "
+                "to skip the frames whose images are missing"
+            )
+        if not ok.any():
+            raise InputError(
+                f"none of the {len(ok)} frames listed in {listed} has its image files (the "
+                f"first missing: {absent[0]}); is the data/ folder there?"
+            )
+        names = ", ".join(f"{f.parent.parent.name}/{f.name}" for f in absent[:5])
+        more = f" and {len(absent) - 5} more" if len(absent) > 5 else ""
+        keep = np.nonzero(ok)[0]
+        self._t_ns = self._t_ns[keep]
+        self._left = [self._left[i] for i in keep]
+        if self._right is not None:
+            self._right = [self._right[i] for i in keep]
+        return (
+            f"{int((~ok).sum())} frame(s) skipped: image file missing: {names}{more} "
+            "(listed in data.csv; --strict refuses the folder instead)"
+        )
 
     def frame_times_ns(self) -> np.ndarray:
         return self._t_ns

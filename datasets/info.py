@@ -38,16 +38,42 @@ def topic_lines(scan: ScanResult) -> list[str]:
     return lines
 
 
+def overlap_line(frame_t_ns: np.ndarray, imu_t_ns: np.ndarray) -> str:
+    """What a run uses: every frame, with IMU where the two streams overlap (IMU samples are
+    handed on with the next frame, so those after the last frame are never used)."""
+    ft, it = frame_t_ns, imu_t_ns
+    if len(ft) == 0:
+        return "  overlap  none: no frames, a run has nothing to track"
+    if len(it) == 0:
+        return f"  overlap  none: no IMU, a run uses the frames alone, {_span(ft)}"
+    lo, hi = max(int(ft[0]), int(it[0])), min(int(ft[-1]), int(it[-1]))
+    if hi < lo:
+        return f"  overlap  none: the IMU misses the frames, a run uses them alone, {_span(ft)}"
+    notes = []
+    bare = int(np.count_nonzero((ft < lo) | (ft > hi)))
+    if bare:
+        notes.append(f"{bare} frames outside it have no IMU")
+    unused = max(0, int(ft[0]) - int(it[0])) + max(0, int(it[-1]) - int(ft[-1]))
+    if unused:
+        notes.append(f"{unused * 1e-9:.2f} s of IMU outside the frames are not used")
+    both = _span(np.array([lo, hi], dtype=np.int64))
+    return f"  overlap  {both} of frames and IMU: what a run uses" + (
+        f" ({'; '.join(notes)})" if notes else ""
+    )
+
+
 def sequence_lines(seq: Sequence) -> list[str]:
-    """Counts, rates, gaps, calibration and ground-truth span of an opened sequence."""
+    """Counts, spans, rates, gaps, calibration and ground truth of an opened sequence (after
+    :meth:`verify` where the source has one: what a run will get)."""
     ft = seq.frame_times_ns()
     imu = seq.imu()
     cal = seq.calibration
     lines = [
-        f"sequence {seq.name!r} ({type(seq).__name__}): duration {seq.duration_ns * 1e-9:.3f} s",
+        f"sequence {seq.name!r} ({type(seq).__name__})",
         f"  frames   {len(ft):7d} {'stereo' if cal.is_stereo else 'mono'}  "
         f"{rate_hz(ft):7.2f} Hz  {_span(ft)}",
         f"  imu      {len(imu):7d}         {rate_hz(imu.t_ns):7.2f} Hz  {_span(imu.t_ns)}",
+        overlap_line(ft, imu.t_ns),
     ]
     for what, t in (("frames", ft), ("imu", imu.t_ns)):
         note = find_gaps(t).describe(what)
@@ -73,12 +99,11 @@ def sequence_lines(seq: Sequence) -> list[str]:
     lines.append(f"  time offset (t_imu = t_cam + offset): {cal.time_offset_ns * 1e-6:.3f} ms")
     gt = seq.ground_truth
     if gt is None or len(gt) == 0:
-        lines.append("ground truth: none")
+        lines.extend(ground_truth_hint(seq))
     else:
-        covered = np.count_nonzero((ft >= gt.t_ns[0]) & (ft <= gt.t_ns[-1]))
         lines.append(
             f"ground truth: {len(gt)} poses, {rate_hz(gt.t_ns):.1f} Hz, {_span(gt.t_ns)}, "
-            f"path {gt.path_length_m():.2f} m, covers {covered}/{len(ft)} frames"
+            f"path {gt.path_length_m():.2f} m, covers {_covered(gt.t_ns, ft)} frames"
         )
     if seq.warnings:
         lines.append(f"warnings ({len(seq.warnings)}):")
@@ -86,6 +111,67 @@ def sequence_lines(seq: Sequence) -> list[str]:
     else:
         lines.append("warnings: none")
     return lines
+
+
+def _covered(gt_t_ns: np.ndarray, ft: np.ndarray) -> str:
+    n = np.count_nonzero((ft >= gt_t_ns[0]) & (ft <= gt_t_ns[-1])) if len(gt_t_ns) else 0
+    return f"{n}/{len(ft)}"
+
+
+def ground_truth_hint(seq: Sequence) -> list[str]:
+    """For a sequence without ground truth: the trajectory files in its folder, or how to
+    pass one."""
+    root = getattr(seq, "root", None)  # an ASL folder's mav0
+    found = []
+    if isinstance(root, Path):
+        dataset = root.parent if root.name == "mav0" else root
+        found = ground_truth_files(dataset)
+    how = "pass one with --gt FILE (EuRoC csv or TUM text)"
+    if not found:
+        return [f"ground truth: none; {how}"]
+    from datasets.euroc import read_trajectory_file
+
+    ft = seq.frame_times_ns()
+    lines = [
+        "ground truth: none in the sequence; trajectory files in its folder (pass one with "
+        "--gt FILE):"
+    ]
+    for path in found:
+        try:
+            traj = read_trajectory_file(path)
+        except InputError:
+            continue
+        lines.append(
+            f"  {path}: {len(traj)} poses, {rate_hz(traj.t_ns):.1f} Hz, covers "
+            f"{_covered(traj.t_ns, ft)} frames"
+        )
+    return lines if len(lines) > 1 else [f"ground truth: none; {how}"]
+
+
+SENSOR_FOLDERS = ("cam", "imu", "leica", "data")  # ASL sensor streams, not ground truth
+
+
+def ground_truth_files(root: Path, max_depth: int = 2) -> list[Path]:
+    """Files under ``root`` (at most ``max_depth`` folders down, sensor folders skipped) that
+    look like trajectories (TUM text or EuRoC csv), sorted."""
+    from slam.evaluation.io import detect_format
+
+    found: list[Path] = []
+    for folder, dirs, files in os.walk(root):
+        depth = len(Path(folder).relative_to(root).parts)
+        dirs[:] = sorted(
+            d for d in dirs if depth < max_depth and not d.lower().startswith(SENSOR_FOLDERS)
+        )
+        for name in sorted(files):
+            p = Path(folder) / name
+            if p.suffix.lower() not in (".csv", ".txt", ".tum"):
+                continue
+            try:
+                if detect_format(p) in ("tum", "euroc"):
+                    found.append(p)
+            except (InputError, OSError):
+                continue
+    return found
 
 
 def describe(path: str | os.PathLike[str], **open_kwargs: object) -> tuple[list[str], bool]:
@@ -101,11 +187,14 @@ def describe(path: str | os.PathLike[str], **open_kwargs: object) -> tuple[list[
         mcap = find_mcap(path) if Path(path).exists() else None
         if mcap is None:
             raise
-        lines.extend(topic_lines(scan_mcap(mcap)))
+        found = scan_mcap(mcap)
+        lines.extend(topic_lines(found))
+        notes = [*found.warnings, found.truncation_note()]
+        lines.extend(f"warning: {w}" for w in notes if w)
         lines.append(f"not usable as a sequence: {exc}")
         return lines, False
     verify = getattr(seq, "verify", None)
-    if callable(verify):  # CRC-check chunks that opening did not need to read
+    if callable(verify):  # CRC-check chunks opening did not read; drops the frames a run skips
         verify()
     scan = getattr(seq, "scan", None)
     if isinstance(scan, ScanResult):

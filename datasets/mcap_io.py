@@ -15,7 +15,10 @@ typestore), zstd chunks of ~4 MB with CRCs. Topics:
 =====================  ============================  ==========================================
 
 Metadata records: ``pyvislam.calibration`` (``json`` = ``Calibration.to_dict()``) and
-``pyvislam.sequence`` (``name``). They are written first, so a truncated file keeps them.
+``pyvislam.sequence`` (``name``; ``message_counts``, a JSON object topic -> messages, and
+``start_ns``/``end_ns``, the log-time span: what the file will hold, as announced by the source
+sequence). They are written first, so a truncated file keeps them, and a reader can count what
+a cut lost (:meth:`datasets.mcap_scan.ScanResult.truncation_note`).
 Times: log time = publish time = ``t_ns`` in the IMU clock; camera header stamps are in the
 camera clock (``t_ns - calibration.time_offset_ns``), so reading adds the offset back.
 
@@ -38,6 +41,7 @@ from mcap.writer import CompressionType, Writer
 from tqdm import tqdm
 
 from datasets import cdr
+from datasets.mcap_scan import COUNTS_KEY, END_KEY, START_KEY
 from datasets.ros2bag import (
     CALIBRATION_METADATA,
     DEFAULT_GT_TOPIC,
@@ -152,6 +156,22 @@ def _timeline(seq: Sequence) -> Iterator[tuple[int, int, ImuSample | StereoFrame
         j += 1
 
 
+def _announced(seq: Sequence, n_cams: int) -> dict[str, str]:
+    """The ``pyvislam.sequence`` keys that say what the file will hold (counts per topic, span)."""
+    n_frames = seq.num_frames
+    counts = {IMAGE_TOPICS[k]: n_frames for k in range(n_cams)}
+    counts.update({CAMERA_INFO_TOPICS[k]: n_frames for k in range(n_cams)})
+    counts[DEFAULT_IMU_TOPIC] = seq.num_imu
+    gt = seq.ground_truth
+    if gt is not None:
+        counts[DEFAULT_GT_TOPIC] = len(gt)
+    times = [seq.frame_times_ns(), seq.imu().t_ns] + ([gt.t_ns] if gt is not None else [])
+    times = [t for t in times if len(t)]
+    start = min((int(t[0]) for t in times), default=0)
+    end = max((int(t[-1]) for t in times), default=0)
+    return {COUNTS_KEY: json.dumps(counts), START_KEY: str(start), END_KEY: str(end)}
+
+
 def write_sequence_mcap(
     seq: Sequence,
     path: str | os.PathLike[str],
@@ -181,13 +201,18 @@ def write_sequence_mcap(
         writer = Writer(fh, chunk_size=chunk_size_bytes, compression=codecs[compression])
         writer.start(profile="ros2", library="pyvislam")
         writer.add_metadata(CALIBRATION_METADATA, {"json": json.dumps(calib.to_dict())})
+        n_cams = len(calib.cameras)
         writer.add_metadata(
             SEQUENCE_METADATA,
-            {"name": seq.name, "format_version": "2", "image_chunks": "separate"},
+            {
+                "name": seq.name,
+                "format_version": "2",
+                "image_chunks": "separate",
+                **_announced(seq, n_cams),
+            },
         )
         ch = _Channels(writer)
         # every channel up front, so the first chunk (a small one) defines them all
-        n_cams = len(calib.cameras)
         cid_info = [
             ch.channel(CAMERA_INFO_TOPICS[k], "sensor_msgs/msg/CameraInfo") for k in range(n_cams)
         ]

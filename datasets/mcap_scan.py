@@ -5,7 +5,10 @@ RecordLengthLimitExceeded) and does not expose where each message lives. This sc
 records in file order (the format is simple: magic, then ``opcode u8 | length u64 | content``),
 so it
 
-- keeps the readable prefix of a truncated file and reports how many bytes were lost,
+- keeps the readable prefix of a truncated file and counts what was lost in messages and
+  seconds, from the file's own account of what it holds (:class:`Recorded`: its summary, our
+  header metadata, or the metadata.yaml of its rosbag2 folder) or, when none survived, from
+  the header of the chunk the cut went through (a lower bound),
 - decompresses each chunk, validates its CRC and skips (with a warning) one that is corrupt,
 - records, per message, its channel, log time, header stamp and location (chunk, offset), and
   keeps the payload of small messages (IMU, poses) so they need no second read.
@@ -16,6 +19,7 @@ classes. :class:`ChunkCache` re-reads large payloads (images) on demand.
 
 from __future__ import annotations
 
+import json
 import mmap
 import os
 import struct
@@ -27,14 +31,17 @@ from typing import Any, BinaryIO
 
 import numpy as np
 from mcap.data_stream import ReadDataStream
-from mcap.records import Channel, Header, Metadata, Schema
+from mcap.records import Channel, Header, Metadata, Schema, Statistics
 
+from datasets.timing import rate_hz
 from slam.core.errors import InputError
 
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 1, 2, 3, 4, 5, 6
-OP_MESSAGE_INDEX, OP_METADATA, OP_DATA_END = 0x07, 0x0C, 0x0F
+OP_MESSAGE_INDEX, OP_STATISTICS, OP_METADATA, OP_DATA_END = 0x07, 0x0B, 0x0C, 0x0F
 LAYOUT_METADATA = "pyvislam.sequence"  # {"image_chunks": "separate"}: see lazy chunks
+# keys of LAYOUT_METADATA announcing what the file holds (written first: they survive a cut)
+COUNTS_KEY, START_KEY, END_KEY = "message_counts", "start_ns", "end_ns"
 LAZY_SCHEMAS = ("sensor_msgs/msg/Image",)
 MESSAGE_PREFIX = 9 + 22  # opcode, length, channel, sequence, log and publish time
 SMALL_PAYLOAD_BYTES = 8192  # payloads up to this size are kept in memory by the scan
@@ -53,6 +60,16 @@ class ChunkRef:
     end_ns: int
     crc: int = 0
     validated: bool = True  # False: indexed from its MessageIndex records, not yet CRC-checked
+
+
+@dataclass(frozen=True)
+class Recorded:
+    """What a file says it holds: messages per topic and their log-time span."""
+
+    counts: dict[str, int]  # topic -> messages
+    start_ns: int
+    end_ns: int
+    source: str  # where the figures come from, for warnings ("the file's summary", ...)
 
 
 @dataclass
@@ -76,6 +93,10 @@ class ScanResult:
     # (empty head, length -1: message of a lazily indexed chunk; its header stamp is unknown)
     complete: bool = False  # footer and closing magic seen
     lost_bytes: int = 0  # bytes at the end that could not be read (truncation)
+    data_complete: bool = False  # the DataEnd record was read: no message was cut off
+    cut_chunk_ns: tuple[int, int] | None = None  # log-time span of the chunk the cut went through
+    statistics: Statistics | None = None  # the summary's Statistics record, when read
+    recorded: Recorded | None = None  # what the file says it holds (None: nothing survived)
     skipped_chunks: int = 0
     skipped_span_ns: int = 0
     warnings: list[str] = field(default_factory=list)
@@ -97,6 +118,65 @@ class ScanResult:
         """One line listing the topics, their types and counts (for error messages)."""
         items = [f"{t} [{s}, {n} msgs]" for t, (s, n) in self.topics().items()]
         return "; ".join(items) if items else "(no topics)"
+
+    def topic_mask(self, topic: str | None) -> np.ndarray:
+        """Which messages (file order) are on ``topic`` (every message when None)."""
+        if topic is None:
+            return np.ones(len(self.msg_channel), dtype=bool)
+        return np.isin(self.msg_channel, self.channel_ids(topic))
+
+    @property
+    def lost_data(self) -> bool:
+        """Truncated before the end of its data section: messages were lost."""
+        return self.lost_bytes > 0 and not self.data_complete
+
+    def truncation_note(self, topic: str | None = None, unit: str = "messages") -> str | None:
+        """What a truncation lost, as a warning: ``unit`` on ``topic`` (all messages when None)
+        and seconds. Counted against :attr:`recorded` when the file's account of itself
+        survived; else only a lower bound from the cut chunk's header. None: not truncated."""
+        if not self.lost_bytes:
+            return None
+        unread = f"its last {self.lost_bytes} bytes could not be read"
+        if self.data_complete:
+            return f"file is truncated after its data ({unread}: index only); no message is lost"
+        mask = self.topic_mask(topic)
+        kept = int(mask.sum())
+        last = int(self.msg_log_ns[mask].max()) if kept else None
+        rec = self.recorded
+        total = None
+        if rec is not None:
+            total = sum(rec.counts.values()) if topic is None else rec.counts.get(topic)
+        if rec is not None and total is not None:
+            lost = max(0, total - kept)
+            lost_s = max(0, rec.end_ns - (last if last is not None else rec.start_ns)) * 1e-9
+            after = f"after t = {last * 1e-9:.3f} s" if last is not None else "from the start"
+            return (
+                f"file is truncated ({unread}): {lost} of {total} {unit} "
+                f"({100.0 * lost / max(total, 1):.0f} %) and {lost_s:.2f} s of "
+                f"{(rec.end_ns - rec.start_ns) * 1e-9:.2f} s are lost, everything {after} "
+                f"(totals from {rec.source})"
+            )
+        kept_text = (
+            f"kept {kept} {unit}, up to t = {last * 1e-9:.3f} s"
+            if last is not None
+            else f"no {unit}"
+        )
+        text = (
+            f"file is truncated ({unread}); {kept_text}; the file's account of what it holds "
+            "(summary, metadata) did not survive, so the loss cannot be counted"
+        )
+        cut = self.cut_chunk_ns
+        if cut is not None:
+            from_ns = cut[0] if last is None else max(last, cut[0])
+            lost_s = (cut[1] - from_ns) * 1e-9
+            rate = rate_hz(np.sort(self.msg_log_ns[mask]))
+            estimate = f" (~{round(rate * lost_s)} {unit})" if rate > 0 else ""
+            if lost_s > 0:
+                text += (
+                    f"; at least {lost_s:.2f} s{estimate} are lost: the chunk the cut went "
+                    f"through ran to t = {cut[1] * 1e-9:.3f} s"
+                )
+        return text
 
     def channel_ids(self, topic: str) -> list[int]:
         return [cid for cid, ch in self.channels.items() if ch.topic == topic]
@@ -221,6 +301,10 @@ def _scan_top_level(mm: mmap.mmap, size: int, result: ScanResult, col: _Collecto
         body = pos + 9
         if body + length > size:
             result.lost_bytes = size - pos
+            if op == OP_CHUNK and body + 16 <= size:
+                start, end = struct.unpack_from("<QQ", mm, body)
+                if start <= end:
+                    result.cut_chunk_ns = (start, end)
             break
         if op == OP_CHUNK:
             if not (result.lazy and _index_lazily(mm, body, length, size, result, col)):
@@ -233,6 +317,10 @@ def _scan_top_level(mm: mmap.mmap, size: int, result: ScanResult, col: _Collecto
         elif op == OP_CHANNEL:
             c = _read_with(Channel, mm[body : body + length])
             result.channels[c.id] = c
+        elif op == OP_DATA_END:
+            result.data_complete = True
+        elif op == OP_STATISTICS:
+            result.statistics = _read_with(Statistics, mm[body : body + length])
         elif op == OP_HEADER:
             h = _read_with(Header, mm[body : body + length])
             result.profile, result.library = h.profile, h.library
@@ -337,16 +425,56 @@ def _finish(result: ScanResult, col: _Collector) -> None:
     result.msg_offset = np.asarray(col.offset, dtype=np.int64)
     result.msg_length = np.asarray(col.length, dtype=np.int64)
     result.heads = col.heads
-    if result.lost_bytes:
-        pct = 100.0 * result.lost_bytes / max(result.file_size, 1)
-        last = f"{result.msg_log_ns.max() * 1e-9:.3f} s" if len(result.msg_log_ns) else "none"
-        result.warnings.append(
-            f"file is truncated: the last {result.lost_bytes} bytes ({pct:.1f}% of "
-            f"{result.file_size}) could not be read; kept {len(result.msg_log_ns)} messages "
-            f"(last log time {last})"
-        )
-    elif not result.complete:
+    result.recorded = _recorded(result)
+    if not result.lost_bytes and not result.complete:
         result.warnings.append("file has no footer (recording was not closed); read all records")
+
+
+def _recorded(result: ScanResult) -> Recorded | None:
+    """What the file says it holds: its summary's Statistics record, else our writer's header
+    metadata, else the metadata.yaml of the rosbag2 folder it sits in (one-file bags only)."""
+    st = result.statistics
+    if st is not None:
+        counts: dict[str, int] = {}
+        for cid, n in st.channel_message_counts.items():
+            ch = result.channels.get(cid)
+            if ch is not None:
+                counts[ch.topic] = counts.get(ch.topic, 0) + int(n)
+        return Recorded(
+            counts, st.message_start_time, st.message_end_time, "the file's summary statistics"
+        )
+    meta = result.metadata.get(LAYOUT_METADATA, {})
+    try:
+        if COUNTS_KEY in meta:
+            counts = {str(k): int(v) for k, v in json.loads(meta[COUNTS_KEY]).items()}
+            start, end = int(meta[START_KEY]), int(meta[END_KEY])
+            return Recorded(counts, start, end, "the file's header metadata")
+    except (ValueError, KeyError, TypeError, AttributeError):
+        pass
+    return _rosbag2_recorded(result.path)
+
+
+def _rosbag2_recorded(path: str) -> Recorded | None:
+    """Counts and span from ``metadata.yaml`` of the rosbag2 folder holding ``path`` alone."""
+    yaml_path = os.path.join(os.path.dirname(os.path.abspath(path)), "metadata.yaml")
+    if not os.path.isfile(yaml_path):
+        return None
+    import yaml
+
+    try:
+        with open(yaml_path, encoding="utf-8") as fh:
+            info = yaml.safe_load(fh)["rosbag2_bagfile_information"]
+        if [os.path.basename(f) for f in info["relative_file_paths"]] != [os.path.basename(path)]:
+            return None
+        counts = {
+            str(t["topic_metadata"]["name"]): int(t["message_count"])
+            for t in info["topics_with_message_count"]
+        }
+        start = int(info["starting_time"]["nanoseconds_since_epoch"])
+        end = start + int(info["duration"]["nanoseconds"])
+    except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError):
+        return None
+    return Recorded(counts, start, end, "the bag's metadata.yaml")
 
 
 class ChunkCache:

@@ -54,6 +54,7 @@ def open_sequence(
     camchain: str | os.PathLike[str] | None = None,
     imu_yaml: str | os.PathLike[str] | None = None,
     gt_path: str | os.PathLike[str] | None = None,
+    strict: bool = False,
 ) -> Sequence:
     """Open ``path`` as a :class:`Sequence`, choosing the reader from what is there.
 
@@ -61,15 +62,19 @@ def open_sequence(
     ``/groundtruth/pose``), or to the ``rostopic`` entries of the Kalibr files when given; a
     topic named explicitly must exist. Calibration: the Kalibr files when given, else the
     file's embedded record. ``gt_path``: a ground-truth file (EuRoC csv or TUM text) that
-    replaces the one found in the source.
+    replaces the one found in the source. ``strict``: refuse input that would lose frames (a
+    listed image file missing, a truncated file, a corrupt chunk) instead of skipping them
+    with a warning.
     """
     p = Path(path)
     if not p.exists():
         raise InputError(f"{p}: no such file or folder")
+    if p.is_file() and p.stat().st_size == 0:
+        raise InputError(f"{p} is empty (0 bytes); expected {SUPPORTED}")
     if find_mav0(p) is not None:
         if any(x is not None for x in (left_topic, right_topic, imu_topic, gt_topic)):
             raise InputError(f"{p} is an EuRoC/TUM-VI folder: topic options do not apply to it")
-        return EurocSequence(p, gt_path=gt_path)
+        return EurocSequence(p, gt_path=gt_path, strict=strict)
     mcap = find_mcap(p)
     if mcap is None:
         if p.suffix == ".db3" or (p.is_dir() and any(p.glob("*.db3"))):
@@ -113,9 +118,11 @@ def open_sequence(
     )
     seq: Ros2McapSequence
     if calibration is None and not required and left_topic is None:
-        seq = McapSequence(mcap, topics=topics)
+        seq = McapSequence(mcap, topics=topics, strict=strict)
     else:
-        seq = Ros2McapSequence(mcap, topics=topics, calibration=calibration, required=required)
+        seq = Ros2McapSequence(
+            mcap, topics=topics, calibration=calibration, required=required, strict=strict
+        )
     if gt_path is not None:
         from datasets.euroc import read_trajectory_file
 

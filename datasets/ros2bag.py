@@ -92,17 +92,21 @@ class Ros2McapSequence(Sequence):
         required: tuple[str, ...] = (),
         pair_tolerance_ns: int = 2_000_000,
         scan: ScanResult | None = None,
+        strict: bool = False,
     ) -> None:
         """Open and index ``path``.
 
         ``required`` lists which of ``("right", "imu", "gt")`` must exist (topics the user named
         explicitly); others are silently unused when absent (the left camera is always required).
+        ``strict``: refuse a truncated file or a corrupt chunk (InputError) instead of keeping
+        what can be read with a warning.
         """
         self.path = os.fspath(path)
         if not os.path.isfile(self.path):
             raise InputError(f"{self.path}: no such file")
         topics = topics or TopicSelection()
         self.topics = topics
+        self.strict = strict
         self.scan = scan if scan is not None else scan_mcap(self.path)
         s = self.scan
         seq_meta = s.metadata.get(SEQUENCE_METADATA, {})
@@ -142,6 +146,13 @@ class Ros2McapSequence(Sequence):
         imu_topic = need("imu", topics.imu, (IMU_TYPE,))
         gt_topic = need("gt", topics.gt, POSE_TYPES)
         assert left is not None
+        truncated = s.truncation_note(left, "frames")
+        if truncated:
+            warnings.append(truncated)
+        if strict and (s.lost_data or s.skipped_chunks):
+            first = truncated if s.lost_data else None
+            first = first or next(w for w in s.warnings if w.startswith("corrupt chunk"))
+            raise InputError(f"{self.path}: {first}; run without --strict to use what can be read")
 
         if calibration is None:
             calibration = embedded_calibration(s)
@@ -187,6 +198,13 @@ class Ros2McapSequence(Sequence):
         for w in warnings:
             self.warn(w)
         self._cache = ChunkCache(s, max_chunks=3)
+        if strict:  # CRC-check the lazily indexed chunks now: refuse before a run, not in it
+            before = len(self.warnings)
+            if self.verify():
+                raise InputError(
+                    f"{self.path}: {self.warnings[before]}; run without --strict to skip the "
+                    "frames of corrupt chunks"
+                )
 
     # --- indexing helpers ----------------------------------------------------------------------
     def _topic_times(
@@ -325,6 +343,10 @@ class Ros2McapSequence(Sequence):
                 try:
                     frame = self._decode(cache, i)
                 except CorruptChunk as exc:
+                    if self.strict:
+                        raise InputError(
+                            f"{self.path}: {exc}; run without --strict to skip its frames"
+                        ) from exc
                     if str(exc) not in self.warnings:
                         self.warn(str(exc))
                     skipped += 1
@@ -338,10 +360,12 @@ class Ros2McapSequence(Sequence):
                 self.warn(f"{skipped} frame(s) in corrupt chunks were skipped while reading")
 
     def verify(self) -> int:
-        """Read every lazily indexed (not yet CRC-checked) chunk once; returns how many are
-        corrupt (each also warned about). ``slam info`` calls this."""
+        """Read every lazily indexed (not yet CRC-checked) chunk once and drop the frames of
+        the corrupt ones, so counts, spans and gaps are what a run will get (``iter_frames``
+        skips the same frames). Returns how many chunks are corrupt (each also warned about).
+        ``slam info`` calls this."""
         cache = ChunkCache(self.scan, max_chunks=1)
-        bad = 0
+        bad: list[int] = []
         try:
             for k, ref in enumerate(self.scan.chunks):
                 if ref.validated:
@@ -350,10 +374,25 @@ class Ros2McapSequence(Sequence):
                     cache.chunk_data(k)
                 except CorruptChunk as exc:
                     self.warn(str(exc))
-                    bad += 1
+                    bad.append(k)
         finally:
             cache.close()
-        return bad
+        if bad:
+            chunk = self.scan.msg_chunk
+            lost = np.isin(chunk[self._left_msg], bad)
+            if self._right_msg is not None:
+                lost |= np.isin(chunk[self._right_msg], bad)
+            if np.any(lost):
+                t = self._frame_t_ns[lost]
+                self.warn(
+                    f"{int(lost.sum())} frame(s) in corrupt chunks will be skipped "
+                    f"(t = {t[0] * 1e-9:.3f} .. {t[-1] * 1e-9:.3f} s)"
+                )
+                self._left_msg = self._left_msg[~lost]
+                if self._right_msg is not None:
+                    self._right_msg = self._right_msg[~lost]
+                self._frame_t_ns = self._frame_t_ns[~lost]
+        return len(bad)
 
     def close(self) -> None:
         self._cache.close()

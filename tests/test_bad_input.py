@@ -40,8 +40,19 @@ def test_truncated_mcap_keeps_prefix(good, tmp_path: Path) -> None:
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: int(len(data) * 0.6)])
     back = McapSequence(cut)
-    assert any("truncated" in w and "bytes" in w for w in back.warnings)
     assert 0.3 * N_FRAMES < back.num_frames < 0.7 * N_FRAMES
+    # the loss is counted in frames and seconds against the totals the header announced
+    lost = N_FRAMES - back.num_frames
+    t_last = back.frame_times_ns()[-1]
+    lost_s = (seq.end_ns() - t_last) * 1e-9
+    note = [w for w in back.warnings if w.startswith("file is truncated")]
+    assert len(note) == 1 and note[0].endswith(
+        f": {lost} of {N_FRAMES} frames ({100 * lost / N_FRAMES:.0f} %) and {lost_s:.2f} s of "
+        f"{seq.duration_ns * 1e-9:.2f} s are lost, everything after t = {t_last * 1e-9:.3f} s "
+        "(totals from the file's header metadata)"
+    )
+    with pytest.raises(InputError, match="file is truncated .*run without --strict"):
+        McapSequence(cut, strict=True)
     # the prefix that was read is exact; calibration survived (written first)
     ref = _frames_by_time(seq)
     np.testing.assert_array_equal(back.frame_times_ns(), seq.frame_times_ns()[: back.num_frames])
@@ -89,8 +100,101 @@ def test_corrupt_chunks_are_skipped(good, tmp_path: Path) -> None:
         assert np.array_equal(f.right, ref_frames[f.t_ns].right)
     assert sum(w.startswith("corrupt chunk at byte") for w in back.warnings) == 2
     assert any("frame(s) in corrupt chunks were skipped" in w for w in back.warnings)
-    # verify() (what `slam info` runs) finds the image chunk without iterating
-    assert McapSequence(bad).verify() == 1
+    # verify() (what `slam info` runs) finds the image chunk without iterating, and drops its
+    # frames: counts and times are those a run gets
+    checked = McapSequence(bad)
+    assert checked.num_frames == N_FRAMES
+    assert checked.verify() == 1
+    assert checked.num_frames == len(frames)
+    np.testing.assert_array_equal(checked.frame_times_ns(), [f.t_ns for f in frames])
+    assert [f.t_ns for f in checked.iter_frames()] == [f.t_ns for f in frames]
+    skipped = N_FRAMES - len(frames)
+    assert any(w.startswith(f"{skipped} frame(s) in corrupt chunks will be skipped") for w in
+               checked.warnings)  # fmt: skip
+    with pytest.raises(InputError, match="corrupt chunk at byte .*without --strict"):
+        McapSequence(bad, strict=True)
+
+
+def test_info_reports_what_a_run_gets(
+    good, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`slam info` on a file with a corrupt image chunk: the frames a run gets, and the gap."""
+    seq, path = good
+    scan = scan_mcap(path)
+    images = [c for c in scan.chunks if not c.validated]
+    ref = images[len(images) // 2]
+    data = bytearray(path.read_bytes())
+    mid = ref.data_offset + ref.data_length // 2
+    data[mid : mid + 64] = bytes(64)
+    bad = tmp_path / "corrupt.mcap"
+    bad.write_bytes(bytes(data))
+    kept = [f.t_ns for f in McapSequence(bad).iter_frames()]
+    assert slam_main(["info", str(bad)]) == 0
+    out = capsys.readouterr().out
+    assert f"  frames        {len(kept)} stereo" in out
+    assert "  gaps     frames: 1 gap(s)" in out
+    assert f"{N_FRAMES - len(kept)} frame(s) in corrupt chunks will be skipped" in out
+
+
+def _cut_raw(tmp_path: Path, fraction: float) -> Path:
+    """A file without our header metadata (a foreign recording), cut to ``fraction``."""
+    ms = 1_000_000
+    path = tmp_path / "raw.mcap"
+    _write_raw(path, [k * 50 * ms for k in range(40)], [k * 5 * ms for k in range(400)])
+    data = path.read_bytes()
+    cut = tmp_path / f"raw_cut{fraction}.mcap"
+    cut.write_bytes(data[: int(len(data) * fraction)])
+    return cut
+
+
+def test_truncation_without_totals_gives_a_lower_bound(tmp_path: Path) -> None:
+    full = scan_mcap(_cut_raw(tmp_path, 1.0))
+    assert full.recorded is not None and full.recorded.counts["/cam0/image_raw"] == 40
+    assert full.recorded.source == "the file's summary statistics"
+    scan = scan_mcap(_cut_raw(tmp_path, 0.5))  # the cut goes through the only chunk
+    assert scan.recorded is None and scan.cut_chunk_ns == (0, 1_995_000_000)
+    assert scan.truncation_note("/cam0/image_raw", "frames") == (
+        f"file is truncated (its last {scan.lost_bytes} bytes could not be read); no frames; "
+        "the file's account of what it holds (summary, metadata) did not survive, so the loss "
+        "cannot be counted; at least 2.00 s are lost: the chunk the cut went through ran to "
+        "t = 1.995 s"
+    )
+    # cut inside the summary: the data section is whole, nothing is lost
+    tail = scan_mcap(_cut_raw(tmp_path, 0.99))
+    assert tail.lost_bytes > 0 and not tail.lost_data and len(tail.msg_log_ns) == 440
+    assert tail.truncation_note() is not None and "no message is lost" in tail.truncation_note()
+
+
+def test_truncated_rosbag2_counts_from_metadata_yaml(tmp_path: Path) -> None:
+    """A cut ROS 2 bag: the totals come from the bag folder's metadata.yaml."""
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    ms = 1_000_000
+    path = bag / "bag_0.mcap"
+    _write_raw(path, [k * 50 * ms for k in range(40)], [k * 5 * ms for k in range(400)])
+    data = path.read_bytes()  # one chunk: the cut loses every message
+    path.write_bytes(data[: int(len(data) * 0.5)])
+    (bag / "metadata.yaml").write_text(
+        "rosbag2_bagfile_information:\n"
+        "  version: 5\n"
+        "  storage_identifier: mcap\n"
+        "  duration:\n    nanoseconds: 1995000000\n"
+        "  starting_time:\n    nanoseconds_since_epoch: 0\n"
+        "  message_count: 440\n"
+        "  topics_with_message_count:\n"
+        "    - topic_metadata:\n        name: /cam0/image_raw\n        type: "
+        "sensor_msgs/msg/Image\n      message_count: 40\n"
+        "    - topic_metadata:\n        name: /imu0\n        type: sensor_msgs/msg/Imu\n"
+        "      message_count: 400\n"
+        "  relative_file_paths:\n    - bag_0.mcap\n"
+    )
+    scan = scan_mcap(path)
+    assert scan.recorded is not None and scan.recorded.source == "the bag's metadata.yaml"
+    assert scan.truncation_note("/cam0/image_raw", "frames") == (
+        f"file is truncated (its last {scan.lost_bytes} bytes could not be read): 40 of 40 "
+        "frames (100 %) and 2.00 s of 2.00 s are lost, everything from the start (totals from "
+        "the bag's metadata.yaml)"
+    )
 
 
 def _write_raw(
@@ -183,13 +287,25 @@ def test_missing_calibration_says_how(tmp_path: Path) -> None:
         open_sequence(path)
 
 
-def test_missing_image_file_is_named(tmp_path: Path) -> None:
+def test_missing_image_file_skips_its_frame(tmp_path: Path) -> None:
     from test_euroc import write_asl_folder
 
-    write_asl_folder(tmp_path)
+    ref = write_asl_folder(tmp_path)
     victim = sorted((tmp_path / "mav0" / "cam1" / "data").iterdir())[3]
     victim.unlink()
-    with pytest.raises(InputError, match=f"image file missing: .*{victim.name}"):
+    seq = open_sequence(tmp_path)
+    t_ref = ref.frame_times_ns()  # type: ignore[attr-defined]
+    np.testing.assert_array_equal(seq.frame_times_ns(), np.delete(t_ref, 3))
+    assert [f.t_ns for f in seq.iter_frames()] == list(np.delete(t_ref, 3))
+    assert (
+        f"1 frame(s) skipped: image file missing: cam1/{victim.name} (listed in data.csv; "
+        "--strict refuses the folder instead)" in seq.warnings
+    )
+    with pytest.raises(InputError, match=f"image file missing: .*{victim.name}.*--strict"):
+        open_sequence(tmp_path, strict=True)
+    for f in (tmp_path / "mav0" / "cam0" / "data").iterdir():
+        f.unlink()
+    with pytest.raises(InputError, match="none of the 6 frames listed in .*cam0.data.csv"):
         open_sequence(tmp_path)
 
 
@@ -199,6 +315,10 @@ def test_unrecognised_paths(tmp_path: Path) -> None:
         open_sequence(tmp_path / "notes.txt")
     with pytest.raises(InputError, match="no such file"):
         open_sequence(tmp_path / "absent.mcap")
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "empty.mcap").write_bytes(b"")
+    with pytest.raises(InputError, match=r"empty.mcap is empty \(0 bytes\)"):
+        open_sequence(tmp_path / "sub" / "empty.mcap")
     with pytest.raises(InputError, match="not a sequence"):
         open_sequence(tmp_path)
 

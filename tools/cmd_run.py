@@ -96,6 +96,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="with --rerun serve: keep serving the final map after the run until Ctrl-C",
     )
+    p.add_argument(
+        "--strict",
+        action="store_true",
+        help="refuse a sequence that would lose frames (a listed image file missing, a "
+        "truncated file, a corrupt chunk); by default they are skipped with a warning",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=handle)
 
@@ -113,17 +119,16 @@ def parse_speed(text: str) -> float:
 
 
 def handle(args: argparse.Namespace) -> int:
+    from datasets.open import open_sequence
     from slam.config import load_config, validate_config
-    from tools.seq_args import open_from_args
+    from tools.seq_args import source_options
 
     out: Path = args.out
     if out.exists() and not out.is_dir():
         raise SlamError(f"--out {out} exists and is not a folder; give a folder for the outputs")
-    try:  # fail before the run, not after it, when the folder cannot be made
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise SlamError(f"--out {out}: cannot create the output folder ({exc.strerror})") from None
-    seq = open_from_args(args)
+    # the input is opened and the configuration checked before --out is made: a bad input or
+    # configuration leaves nothing behind
+    seq = open_sequence(args.seq, **source_options(args), strict=args.strict)
     default_preset = "euroc-stereo-imu" if seq.num_imu else "stereo-vo"
     cfg = load_config(args.config, default_preset)
     if args.speed is not None:
@@ -139,6 +144,10 @@ def handle(args: argparse.Namespace) -> int:
     validate_config(cfg)  # with the command line's overrides
     if not seq.calibration.is_stereo:
         raise SlamError(f"{seq.name}: the pipeline needs a stereo sequence (cam0 and cam1)")
+    try:  # fail before the run, not after it, when the folder cannot be made
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SlamError(f"--out {out}: cannot create the output folder ({exc.strerror})") from None
     from slam.runtime.wiring import run_slam  # heavy (OpenCV, GTSAM): once the inputs are fine
 
     result = run_slam(

@@ -18,15 +18,36 @@ from tqdm import tqdm
 from datasets.ply import write_ply_mesh
 from datasets.synth.generator import SyntheticSequence
 from slam.core.atomic import write_atomic
+from slam.core.errors import InputError
 
 DEPTH_SCALE_M = 0.001  # one unit of the 16-bit depth PNGs, metres (TUM/7-Scenes convention)
+DEPTH_NAME_DIGITS = 19  # EuRoC's zero-padded nanoseconds: names sort in time order
+
+
+def depth_image_name(t_ns: int) -> str:
+    """``<t_ns>.png`` with ``t_ns`` zero-padded to 19 digits (as EuRoC names images), so that
+    the names sort in time order."""
+    return f"{int(t_ns):0{DEPTH_NAME_DIGITS}d}.png"
+
+
+def read_depth_folder(path: str | os.PathLike[str]) -> tuple[np.ndarray, list[Path]]:
+    """The depth images of a :func:`write_depth_images` folder: (t_ns int64, paths), in time
+    order. Reads zero-padded names and the unpadded ones of older versions alike."""
+    root = Path(path)
+    if not (root / "depth.json").is_file():
+        raise InputError(
+            f"{root}: no depth.json; give a folder written by `slam synth --depth-dir`"
+        )
+    found = sorted((int(p.stem), p) for p in root.glob("*.png") if p.stem.isdigit() and p.is_file())
+    return np.array([t for t, _ in found], dtype=np.int64), [p for _, p in found]
 
 
 def write_depth_images(
     seq: SyntheticSequence, out_dir: str | os.PathLike[str], cam: int = 0, progress: bool = True
 ) -> int:
-    """Ground-truth depth of every frame as ``<t_ns>.png`` (uint16, millimetres, 0 = none) plus
-    ``depth.json`` (scale, camera, intrinsics). Returns the number of images written."""
+    """Ground-truth depth of every frame as ``<t_ns>.png`` (:func:`depth_image_name`: 19
+    zero-padded digits; uint16, millimetres, 0 = none) plus ``depth.json`` (scale, camera,
+    intrinsics). Returns the number of images written."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     camera = seq.calibration.cameras[cam]
@@ -43,7 +64,7 @@ def write_depth_images(
         ok, buf = cv2.imencode(".png", mm)
         if not ok:
             raise OSError(f"cannot encode depth image {i}")
-        write_atomic(out / f"{int(times[i])}.png", buf.tobytes())
+        write_atomic(out / depth_image_name(int(times[i])), buf.tobytes())
     return len(times)
 
 
