@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import random
 import subprocess
 import sys
 from pathlib import Path
@@ -81,6 +82,37 @@ def test_run_bad_inputs_are_one_line_errors(tmp_path, capsys):
     assert slam(["synth", str(seq), "--duration", "1", "-q"]) == 0
     assert slam(["run", str(seq), "--out", str(tmp_path / "o"), "--config", str(cfg)]) == 2
     assert "max_featurez" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()  # nothing made for a run that cannot start
+
+
+def test_an_input_that_cannot_be_opened_leaves_no_out_folder(tmp_path, capsys):
+    noise = tmp_path / "noise.mcap"
+    noise.write_bytes(random.Random(0).randbytes(4096))
+    empty = tmp_path / "empty.mcap"
+    empty.write_bytes(b"")
+    for seq, why in (
+        (noise, "not a sequence I can read"),
+        (empty, "is empty (0 bytes)"),
+        (tmp_path / "absent.mcap", "no such file or folder"),
+    ):
+        out = tmp_path / f"out_{seq.stem}" / "run"
+        assert slam(["run", str(seq), "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and why in err[0]
+        assert not out.parent.exists()
+
+
+def test_strict_refuses_a_folder_with_a_missing_image(tmp_path, capsys):
+    from test_euroc import write_asl_folder
+
+    write_asl_folder(tmp_path / "seq")
+    victim = sorted((tmp_path / "seq" / "mav0" / "cam0" / "data").iterdir())[2]
+    victim.unlink()
+    out = tmp_path / "out"
+    assert slam(["run", str(tmp_path / "seq"), "--out", str(out), "--strict"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"image file missing: {victim}" in err[0] and "--strict" in err[0]
+    assert not out.exists()
 
 
 def test_help_teaches():

@@ -237,3 +237,65 @@ def test_unordered_csv_rows_are_sorted_and_counted(tmp_path: Path) -> None:
     )
     np.testing.assert_array_equal(seq.imu().t_ns, ref.imu().t_ns)  # type: ignore[attr-defined]
     np.testing.assert_array_equal(seq.imu().accel_m_s2, ref.imu().accel_m_s2)  # type: ignore[attr-defined]
+
+
+def test_overlap_line_counts_what_a_run_uses() -> None:
+    from datasets.info import overlap_line
+
+    s = 1_000_000_000
+    frames = np.arange(10, 15) * s  # 10 .. 14 s
+    imu = np.arange(0, 101) * s // 10  # 0 .. 10 s: only the first frame has IMU
+    assert overlap_line(frames, np.arange(0, 301) * s // 10) == (
+        "  overlap  10.000 .. 14.000 s (4.00 s) of frames and IMU: what a run uses "
+        "(26.00 s of IMU outside the frames are not used)"
+    )
+    assert overlap_line(frames, imu) == (
+        "  overlap  10.000 .. 10.000 s (0.00 s) of frames and IMU: what a run uses (4 frames "
+        "outside it have no IMU; 10.00 s of IMU outside the frames are not used)"
+    )
+    assert overlap_line(frames, imu[:50]).startswith("  overlap  none: the IMU misses the frames")
+    assert overlap_line(frames, imu[:0]) == (
+        "  overlap  none: no IMU, a run uses the frames alone, 10.000 .. 14.000 s (4.00 s)"
+    )
+
+
+def test_info_names_ground_truth_files_beside_the_folder(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Ground truth outside mav0/: `slam info` lists it (poses, coverage) and says --gt."""
+    write_asl_folder(tmp_path)
+    mav0 = tmp_path / "mav0"
+    (tmp_path / "groundtruth").mkdir()
+    (mav0 / "state_groundtruth_estimate0" / "data.csv").rename(tmp_path / "groundtruth" / "a.csv")
+    (tmp_path / "notes.txt").write_text("not a trajectory\n")
+    assert slam_main(["info", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert (
+        "ground truth: none in the sequence; trajectory files in its folder (pass one with "
+        f"--gt FILE):\n  {tmp_path / 'groundtruth' / 'a.csv'}: "
+    ) in out
+    assert "covers 6/6 frames" in out and "notes.txt" not in out and "imu0" not in out
+    gt = tmp_path / "groundtruth" / "a.csv"
+    assert slam_main(["info", str(tmp_path), "--gt", str(gt)]) == 0
+    assert re.search(r"ground truth: \d+ poses, .* covers 6/6 frames", capsys.readouterr().out)
+    (gt).unlink()
+    assert slam_main(["info", str(tmp_path)]) == 0
+    assert "ground truth: none; pass one with --gt FILE (EuRoC csv or TUM text)" in (
+        capsys.readouterr().out
+    )
+
+
+def test_info_micro_spans_and_ground_truth(micro: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The micro folder: 4.7 s of images in 145.6 s of IMU, ground truth in a subfolder."""
+    assert slam_main(["info", str(micro)]) == 0
+    out = capsys.readouterr().out
+    assert "duration 145" not in out
+    assert "(4.70 s) of frames and IMU: what a run uses (140.90 s of IMU outside" in out
+    gt = micro / "groundtruth_openvins"
+    for name, poses, covers in (
+        ("V1_01_easy.csv", 2895, "95/95"),
+        ("V1_01_easy.txt", 2895, "95/95"),
+        ("V1_01_easy_original.txt", 28712, "74/95"),
+    ):
+        line = next(x for x in out.splitlines() if x.startswith(f"  {gt / name}: "))
+        assert line.endswith(f"covers {covers} frames") and f": {poses} poses, " in line

@@ -9,6 +9,7 @@ import numpy as np
 from datasets.open import open_sequence
 from datasets.ply import read_ply
 from datasets.synth import make_synthetic_sequence
+from datasets.synth.export import depth_image_name, read_depth_folder
 from tools.cli import main
 
 
@@ -36,10 +37,28 @@ def test_synth_cli_writes_mcap_depth_and_mesh(tmp_path) -> None:
     v_ref, t_ref = ref.scene_mesh()
     assert np.allclose(verts, v_ref, atol=1e-5) and np.array_equal(tris, t_ref)
     t7 = int(ref.frame_times_ns()[7])
-    depth_mm = cv2.imread(str(tmp_path / "depth" / f"{t7}.png"), cv2.IMREAD_UNCHANGED)
+    depth_mm = cv2.imread(str(tmp_path / "depth" / f"{t7:019d}.png"), cv2.IMREAD_UNCHANGED)
     assert depth_mm.dtype == np.uint16
     assert np.abs(depth_mm * 1e-3 - ref.depth(7)).max() <= 0.0005 + 1e-6
     assert (tmp_path / "depth" / "depth.json").is_file()
+    # names sort in time order (zero-padded, 19 digits as EuRoC's) and read back in order
+    names = sorted(p.name for p in (tmp_path / "depth").glob("*.png"))
+    assert names[:2] == ["0000000000000000000.png", "0000000000050000000.png"]
+    t_ns, paths = read_depth_folder(tmp_path / "depth")
+    np.testing.assert_array_equal(t_ns, ref.frame_times_ns())
+    assert [p.name for p in paths] == names
+
+
+def test_depth_folder_reads_old_unpadded_names(tmp_path) -> None:
+    """Folders written before the names were padded (``0.png``, ``100000000.png``) still read,
+    in time order, not name order."""
+    for t in (0, 50_000_000, 100_000_000, 1_000_000_000):
+        (tmp_path / f"{t}.png").write_bytes(b"")
+    (tmp_path / "depth.json").write_text("{}")
+    t_ns, paths = read_depth_folder(tmp_path)
+    assert t_ns.tolist() == [0, 50_000_000, 100_000_000, 1_000_000_000]
+    assert [p.name for p in paths] == ["0.png", "50000000.png", "100000000.png", "1000000000.png"]
+    assert depth_image_name(50_000_000) == "0000000000050000000.png"
 
 
 def test_synth_cli_user_errors_exit_2(tmp_path, capsys) -> None:

@@ -10,8 +10,12 @@ from tools.seq_args import SEQUENCE_HELP, add_sequence_args, source_options
 DESCRIPTION = (
     """\
 Summarise a sequence: topics with types, counts and rates (MCAP), frame and IMU counts, rates,
-duration and gaps, the calibration (intrinsics, distortion, extrinsics, IMU noise, time offset),
-the ground-truth span, and every data-quality warning found while reading.
+spans and gaps, the span where frames and IMU overlap (what a run uses), the calibration
+(intrinsics, distortion, extrinsics, IMU noise, time offset), the ground truth (or, when the
+sequence has none, the trajectory files in its folder to pass with --gt), and every data-quality
+warning found while reading. Counts are what a run will get: frames in corrupt chunks or with a
+missing image file are left out (and named in a warning); a truncated file's warning counts the
+frames and seconds it lost.
 
 An MCAP file that is not a usable sequence (e.g. odometry topics only, or no calibration) still
 gets its topic list, then the reason it cannot be used (exit status 2).
@@ -37,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "info",
-        help="summarise a sequence (topics, rates, gaps, calibration, ground truth)",
+        help="summarise a sequence (topics, rates, spans, gaps, calibration, ground truth)",
         description=DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

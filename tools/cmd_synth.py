@@ -129,7 +129,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--aliasing", action="store_true", help="identical boxes and long walls (loop-closure trap)"
     )
     p.add_argument("--pixel-noise", type=float, default=0.0, metavar="SIGMA", help="grey levels")
-    p.add_argument("--depth-dir", metavar="DIR", type=Path, help="also write cam0 depth PNGs (mm)")
+    p.add_argument(
+        "--depth-dir",
+        metavar="DIR",
+        type=Path,
+        help="also write cam0 depth PNGs (uint16 mm; named by time in ns, zero-padded to 19 "
+        "digits as EuRoC's images, so they sort) and depth.json",
+    )
     p.add_argument("--mesh", metavar="FILE.ply", type=Path, help="also write the scene mesh")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
