@@ -299,3 +299,34 @@ def test_info_micro_spans_and_ground_truth(micro: Path, capsys: pytest.CaptureFi
     ):
         line = next(x for x in out.splitlines() if x.startswith(f"  {gt / name}: "))
         assert line.endswith(f"covers {covers} frames") and f": {poses} poses, " in line
+
+
+def test_run_goes_on_past_a_missing_image(micro: Path, tmp_path: Path) -> None:
+    """The micro folder, linked file by file into tmp_path with one left image gone: the run
+    skips that frame, names it in stats.json, and tracks the others."""
+    import json
+
+    src, dst = micro / "mav0", tmp_path / "seq" / "mav0"
+    for name in ("cam0", "cam1"):
+        (dst / name / "data").mkdir(parents=True)
+        for f in ("data.csv", "sensor.yaml"):
+            (dst / name / f).symlink_to(src / name / f)
+    (dst / "imu0").symlink_to(src / "imu0")
+    times = EurocSequence(micro).frame_times_ns()
+    for t in times:
+        for name in ("cam0", "cam1"):
+            (dst / name / "data" / f"{t}.png").symlink_to(src / name / "data" / f"{t}.png")
+    missing = dst / "cam0" / "data" / f"{times[5]}.png"
+    missing.unlink()
+    out = tmp_path / "run"
+    argv = ["run", str(tmp_path / "seq"), "--out", str(out), "--max-frames", "11"]
+    assert slam_main([*argv, "--speed", "max", "--config", "stereo-vo", "--no-progress"]) == 0
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["frames_in"] == 11
+    skipped = [w for w in stats["sequence_warnings"] if "frame(s) skipped" in w]
+    assert skipped == [
+        f"1 frame(s) skipped: image file missing: cam0/{times[5]}.png (listed in data.csv; "
+        "--strict refuses the folder instead)"
+    ]
+    tracked = np.loadtxt(out / "trajectory.tum")[:, 0]
+    assert len(tracked) == 11 and not np.any(np.abs(tracked - times[5] * 1e-9) < 1e-4)
