@@ -149,6 +149,14 @@ class Ros2McapSequence(Sequence):
         truncated = s.truncation_note(left, "frames")
         if truncated:
             warnings.append(truncated)
+        elif s.skipped_chunks and s.recorded is not None and left in s.recorded.counts:
+            total = s.recorded.counts[left]
+            lost = total - int(s.topic_mask(left).sum())
+            if lost > 0:
+                warnings.append(
+                    f"{lost} of {total} frames were in the corrupt chunk(s) and are lost "
+                    f"(totals from {s.recorded.source})"
+                )
         if strict and (s.lost_data or s.skipped_chunks):
             first = truncated if s.lost_data else None
             first = first or next(w for w in s.warnings if w.startswith("corrupt chunk"))

@@ -165,6 +165,33 @@ def test_truncation_without_totals_gives_a_lower_bound(tmp_path: Path) -> None:
     assert tail.truncation_note() is not None and "no message is lost" in tail.truncation_note()
 
 
+def test_frames_lost_in_a_corrupt_chunk_are_counted(tmp_path: Path) -> None:
+    """A foreign file (images in ordinary chunks): the frames a corrupt chunk held are counted
+    against the summary's statistics."""
+    ms = 1_000_000
+    path = tmp_path / "chunks.mcap"
+    frames = [k * 50 * ms for k in range(40)]
+    _write_raw(path, frames, [k * 5 * ms for k in range(400)], chunk_size=4096)
+    scan = scan_mcap(path)
+    in_chunk = scan.msg_chunk == 3  # images are written first: chunk 3 holds only images
+    assert in_chunk.sum() > 1 and set(scan.msg_channel[in_chunk]) == set(
+        scan.channel_ids("/cam0/image_raw")
+    )
+    victim = scan.chunks[3]
+    data = bytearray(path.read_bytes())
+    mid = victim.data_offset + victim.data_length // 2
+    data[mid : mid + 32] = bytes(32)
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    seq = McapSequence(bad)
+    lost = 40 - seq.num_frames
+    assert lost == in_chunk.sum()
+    assert (
+        f"{lost} of 40 frames were in the corrupt chunk(s) and are lost (totals from the "
+        "file's summary statistics)" in seq.warnings
+    )
+
+
 def test_truncated_rosbag2_counts_from_metadata_yaml(tmp_path: Path) -> None:
     """A cut ROS 2 bag: the totals come from the bag folder's metadata.yaml."""
     bag = tmp_path / "bag"
@@ -204,12 +231,13 @@ def _write_raw(
     *,
     encoding_override: bytes | None = None,
     calibration: bool = True,
+    chunk_size: int = 1024 * 1024,
 ) -> None:
     """Write a file message by message, in the given (possibly bad) order."""
     cal = small_rig_calibration(32, 24, stereo=False)
     rng = np.random.default_rng(0)
     with open(path, "wb") as fh:
-        w = Writer(fh, compression=CompressionType.ZSTD)
+        w = Writer(fh, compression=CompressionType.ZSTD, chunk_size=chunk_size)
         w.start(profile="ros2", library="test")
         if calibration:
             w.add_metadata("pyvislam.calibration", {"json": json.dumps(cal.to_dict())})
