@@ -148,7 +148,11 @@ def ground_truth_hint(seq: Sequence) -> list[str]:
     return lines if len(lines) > 1 else [f"ground truth: none; {how}"]
 
 
-SENSOR_FOLDERS = ("cam", "imu", "leica", "data")  # ASL sensor streams, not ground truth
+SENSOR_PREFIXES = ("cam", "imu", "leica")  # ASL sensor folders (and their data/): not ground truth
+
+
+def _sensor_folder(name: str) -> bool:
+    return name.lower().startswith(SENSOR_PREFIXES) or name == "data"
 
 
 def ground_truth_files(root: Path, max_depth: int = 2) -> list[Path]:
@@ -159,9 +163,7 @@ def ground_truth_files(root: Path, max_depth: int = 2) -> list[Path]:
     found: list[Path] = []
     for folder, dirs, files in os.walk(root):
         depth = len(Path(folder).relative_to(root).parts)
-        dirs[:] = sorted(
-            d for d in dirs if depth < max_depth and not d.lower().startswith(SENSOR_FOLDERS)
-        )
+        dirs[:] = sorted(d for d in dirs if depth < max_depth and not _sensor_folder(d))
         for name in sorted(files):
             p = Path(folder) / name
             if p.suffix.lower() not in (".csv", ".txt", ".tum"):

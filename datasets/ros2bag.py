@@ -107,6 +107,7 @@ class Ros2McapSequence(Sequence):
         topics = topics or TopicSelection()
         self.topics = topics
         self.strict = strict
+        self._corrupt_chunks: list[int] | None = None  # set by verify()
         self.scan = scan if scan is not None else scan_mcap(self.path)
         s = self.scan
         seq_meta = s.metadata.get(SEQUENCE_METADATA, {})
@@ -371,7 +372,9 @@ class Ros2McapSequence(Sequence):
         """Read every lazily indexed (not yet CRC-checked) chunk once and drop the frames of
         the corrupt ones, so counts, spans and gaps are what a run will get (``iter_frames``
         skips the same frames). Returns how many chunks are corrupt (each also warned about).
-        ``slam info`` calls this."""
+        ``slam info`` calls this; a second call returns the first one's answer."""
+        if self._corrupt_chunks is not None:
+            return len(self._corrupt_chunks)
         cache = ChunkCache(self.scan, max_chunks=1)
         bad: list[int] = []
         try:
@@ -400,6 +403,7 @@ class Ros2McapSequence(Sequence):
                 if self._right_msg is not None:
                     self._right_msg = self._right_msg[~lost]
                 self._frame_t_ns = self._frame_t_ns[~lost]
+        self._corrupt_chunks = bad
         return len(bad)
 
     def close(self) -> None:

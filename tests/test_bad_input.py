@@ -106,6 +106,8 @@ def test_corrupt_chunks_are_skipped(good, tmp_path: Path) -> None:
     assert checked.num_frames == N_FRAMES
     assert checked.verify() == 1
     assert checked.num_frames == len(frames)
+    n_warnings = len(checked.warnings)
+    assert checked.verify() == 1 and len(checked.warnings) == n_warnings  # once is enough
     np.testing.assert_array_equal(checked.frame_times_ns(), [f.t_ns for f in frames])
     assert [f.t_ns for f in checked.iter_frames()] == [f.t_ns for f in frames]
     skipped = N_FRAMES - len(frames)
