@@ -12,6 +12,7 @@ from typing import Any
 FORMATS = ("tum", "euroc", "kitti", "bag", "run", "sequence")
 ALIGNMENTS = ("se3", "sim3", "scale", "posyaw", "origin", "none")
 RELATIONS = ("trans", "angle_deg", "angle_rad", "rot", "full")
+TIME_UNITS = ("s", "ms", "us", "ns")
 
 DESCRIPTION = """\
 Score an estimated trajectory against a reference (ground truth), with the same numbers as evo.
@@ -46,6 +47,16 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--est-topic", help="bag topic of the estimate")
     p.add_argument("--ref-times", help="KITTI: times file (s, one per line) of the reference")
     p.add_argument("--est-times", help="KITTI: times file of the estimate")
+    p.add_argument(
+        "--ref-time-unit",
+        choices=TIME_UNITS,
+        help="unit of the reference's time column (default: the format's, TUM s, EuRoC csv ns)",
+    )
+    p.add_argument(
+        "--est-time-unit",
+        choices=TIME_UNITS,
+        help="unit of the estimate's time column (e.g. ns for EuRoC times in a TUM file)",
+    )
     p.add_argument(
         "--dedupe",
         choices=("first", "last"),
@@ -166,6 +177,8 @@ def _options(args: argparse.Namespace) -> Any:
         interpolate=args.interpolate,
         align=args.align,
         align_first=args.align_first,
+        ref_time_unit=args.ref_time_unit,
+        est_time_unit=args.est_time_unit,
     )
 
 
