@@ -180,7 +180,11 @@ def test_cli_end_to_end(tmp_path: Path, capsys) -> None:
     text = capsys.readouterr().out
     assert "no alignment (--align none): the estimate is compared as given, scale 1\n" in text
     assert "on 0 poses" not in text and "rotation 0.0000 deg" not in text
-    for fmt, marker in (("markdown", "| run"), ("csv", "run,rmse"), ("latex", r"\begin{tabular}")):
+    for fmt, marker in (
+        ("markdown", "| run"),
+        ("csv", "run,metric,alignment,rmse"),
+        ("latex", r"\begin{tabular}"),
+    ):
         assert main(["eval", "table", str(out), str(rpe_json), "--format", fmt]) == 0
         table = capsys.readouterr().out
         assert marker in table and table.count("\n") >= 3
