@@ -99,15 +99,18 @@ def test_epoch_times_in_another_unit_are_named_with_the_option(
     assert a["stats"] == b["stats"]
 
 
-def test_times_from_zero_in_milliseconds(tmp_path: Path, capsys) -> None:
-    """Both from 0: the ranges overlap at the start, but the estimate's is 1000 times longer."""
-    ref, _, in_ms = _pair(tmp_path, "ms", start_ns=0)
+@pytest.mark.parametrize("unit, name", [("ms", "milliseconds"), ("ns", "nanoseconds")])
+def test_times_from_zero_in_another_unit(tmp_path: Path, capsys, unit: str, name: str) -> None:
+    """Both from 0: the ranges overlap at the start (one pair: 'se3 alignment needs at least
+    3 pose pairs' before), but the estimate's is 1000 or 1e9 times longer."""
+    ref, _, in_unit = _pair(tmp_path, unit, start_ns=0)
     xyz, q = _poses(60)
     tum_ref = _tum(tmp_path / "gt.txt", [f"{0.05 * k:.2f}" for k in range(60)], xyz, q)
     for r in (ref, tum_ref):
-        assert main(["eval", "ape", str(r), str(in_ms)]) == 2
+        assert main(["eval", "ape", str(r), str(in_unit)]) == 2
         err = capsys.readouterr().err.strip()
-        assert "look like milliseconds (first 0)" in err and err.endswith("pass --est-time-unit ms")
+        assert f"look like {name} (first 0)" in err and err.endswith(f"--est-time-unit {unit}")
+        assert main(["eval", "ape", str(r), str(in_unit), "--est-time-unit", unit]) == 0
 
 
 def test_reference_in_nanoseconds_names_the_reference_option(tmp_path: Path, capsys) -> None:
