@@ -177,7 +177,38 @@ def test_cli_end_to_end(tmp_path: Path, capsys) -> None:
         )
         == 0
     )
-    for fmt, marker in (("markdown", "| run"), ("csv", "run,rmse"), ("latex", r"\begin{tabular}")):
+    text = capsys.readouterr().out
+    assert "no alignment (--align none): the estimate is compared as given, scale 1\n" in text
+    assert "on 0 poses" not in text and "rotation 0.0000 deg" not in text
+    for fmt, marker in (
+        ("markdown", "| run"),
+        ("csv", "run,metric,alignment,rmse"),
+        ("latex", r"\begin{tabular}"),
+    ):
         assert main(["eval", "table", str(out), str(rpe_json), "--format", fmt]) == 0
         table = capsys.readouterr().out
         assert marker in table and table.count("\n") >= 3
+
+
+def test_the_alignment_line_says_what_was_estimated() -> None:
+    gt = _helix(50)
+    est = _transformed(gt, lie.yaw_rotation(0.3), np.array([1.0, 0.0, 0.0]))
+    poses = lie.poses_from_pq(gt.positions_m, gt.q_wxyz)
+    est_poses = lie.poses_from_pq(est.positions_m, est.q_wxyz)
+    lines = {
+        m: estimate_alignment(poses, est_poses, m).describe()
+        for m in ("none", "origin", "scale", "se3")
+    }
+    assert (
+        lines["none"] == "no alignment (--align none): the estimate is compared as given, scale 1"
+    )
+    assert lines["origin"].startswith(
+        "alignment origin on 1 pose: scale 1.000000, rotation 17.1887 deg"
+    )
+    assert (
+        lines["scale"].startswith("alignment scale on 50 poses: scale ")
+        and "rotation" not in lines["scale"]
+    )
+    assert lines["se3"].startswith(
+        "alignment se3 on 50 poses: scale 1.000000, rotation 17.1887 deg"
+    )

@@ -110,7 +110,8 @@ def test_non_overlapping_ranges_and_ns_hint(tmp_path: Path) -> None:
     ns = "1000000000.5 0 0 0 0 0 0 1\n2000000000.5 1 0 0 0 0 0 1\n"  # nanoseconds in a TUM file
     est_ns = evio.read_trajectory(_write(tmp_path, "ns.txt", ns))
     with pytest.raises(
-        InputError, match=r"factor of ~[0-9.e+]+: .*ns.txt probably holds nanoseconds"
+        InputError,
+        match=r"factor of ~[0-9.e+]+: .*ns.txt probably holds nanoseconds .*: pass --est-time-unit ns$",
     ):
         associate(ref, est_ns)
 

@@ -12,6 +12,7 @@ from typing import Any
 FORMATS = ("tum", "euroc", "kitti", "bag", "run", "sequence")
 ALIGNMENTS = ("se3", "sim3", "scale", "posyaw", "origin", "none")
 RELATIONS = ("trans", "angle_deg", "angle_rad", "rot", "full")
+TIME_UNITS = ("s", "ms", "us", "ns")
 
 DESCRIPTION = """\
 Score an estimated trajectory against a reference (ground truth), with the same numbers as evo.
@@ -21,10 +22,7 @@ Score an estimated trajectory against a reference (ground truth), with the same 
          sub-trajectory lengths (KITTI/rpg style, --lengths)
   table  gather result files (ours or evo's .zip) into one markdown/CSV/LaTeX table
 
-Inputs (format detected, or forced with --format): TUM (.txt/.tum, seconds), EuRoC csv
-(ground-truth or estimate layout, ns), KITTI (12 values per line, + optional times file),
-ROS 1/2 bags and MCAP (PoseStamped, Odometry, ...: --ref-topic/--est-topic), a `slam run`
-output folder, and a sequence (EuRoC folder, our MCAP) for its ground truth.
+INPUTS
 
 Examples:
   slam eval ape gt.txt est.txt --align se3 --plot ape.png --json ape.json
@@ -33,6 +31,54 @@ Examples:
   slam eval rpe gt.txt est.txt --delta 1 10 --delta-unit metres --plot rpe.png
   slam eval rpe 00_gt.txt 00_est.txt --ref-times times.txt --lengths kitti
   slam eval table run1/ape.json run2/ape.json --format latex
+"""
+
+INPUTS = """\
+Inputs (format detected, or forced with --format): TUM (.txt/.tum, seconds), EuRoC csv
+(ground-truth or estimate layout, ns), KITTI (12 values per line, + optional times file),
+ROS 1/2 bags and MCAP (PoseStamped, Odometry, ...: --ref-topic/--est-topic), a `slam run`
+output folder, and a sequence (EuRoC folder, our MCAP) for its ground truth. Times in
+another unit than the format's (EuRoC ns in a TUM file): --ref-time-unit/--est-time-unit."""
+DESCRIPTION = DESCRIPTION.replace("INPUTS", INPUTS)
+
+APE_DESCRIPTION = f"""\
+Absolute pose error, as evo_ape: pair the estimate's poses with the reference's by time,
+align the estimate (--align), then give the error of every pose (--relation) and its
+statistics (rmse, mean, median, std, min, max).
+
+{INPUTS}
+"""
+APE_EPILOG = """\
+Examples:
+  slam eval ape gt.txt est.txt --plot ape.png --json ape.json     # SE(3) alignment
+  slam eval ape V1_01_easy/ run1/ --align posyaw                  # VIO: 4-DoF alignment
+  slam eval ape gt.csv mono.txt --align sim3 --interpolate        # monocular: with scale
+  slam eval ape gt.csv est.txt --est-time-unit ns                 # EuRoC ns in a TUM file
+"""
+RPE_DESCRIPTION = f"""\
+Relative pose error, as evo_rpe: the error of the estimate's motion between poses a delta
+apart (--delta in frames, seconds or metres). With --lengths instead: drift in % of the
+length and deg/m over sub-trajectories of given lengths (KITTI/rpg style). Relative motion
+needs no alignment (default none), except the scale of a monocular estimate (sim3, scale).
+
+{INPUTS}
+"""
+RPE_EPILOG = """\
+Examples:
+  slam eval rpe gt.txt est.txt --delta 1 10 --plot rpe.png --json rpe.json
+  slam eval rpe gt.txt est.txt --delta 1 --delta-unit metres --relation angle_deg
+  slam eval rpe 00_gt.txt 00_est.txt --ref-times times.txt --lengths kitti --plot drift.png
+"""
+TABLE_DESCRIPTION = """\
+One table of several results: the JSON files of `slam eval ape|rpe --json` (one result or a
+list each) and evo's result zips (evo_ape/evo_rpe --save_results). A row per result: the run
+(estimate), the metric (APE/RPE/drift, relation, unit, delta), the alignment, and the
+statistics.
+"""
+TABLE_EPILOG = """\
+Examples:
+  slam eval table run1/ape.json run2/ape.json run1/rpe.json
+  slam eval table run*/ape.json evo_results/*.zip --format latex --out table.tex
 """
 
 
@@ -46,6 +92,16 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--est-topic", help="bag topic of the estimate")
     p.add_argument("--ref-times", help="KITTI: times file (s, one per line) of the reference")
     p.add_argument("--est-times", help="KITTI: times file of the estimate")
+    p.add_argument(
+        "--ref-time-unit",
+        choices=TIME_UNITS,
+        help="unit of the reference's time column (default: the format's, TUM s, EuRoC csv ns)",
+    )
+    p.add_argument(
+        "--est-time-unit",
+        choices=TIME_UNITS,
+        help="unit of the estimate's time column (e.g. ns for EuRoC times in a TUM file)",
+    )
     p.add_argument(
         "--dedupe",
         choices=("first", "last"),
@@ -94,7 +150,11 @@ def register(subparsers: Any) -> None:
     parser.set_defaults(func=lambda args: (parser.print_help(), 1)[1])
 
     ape = sub.add_parser(
-        "ape", help="absolute pose error", description=DESCRIPTION, formatter_class=fmt
+        "ape",
+        help="absolute pose error",
+        description=APE_DESCRIPTION,
+        epilog=APE_EPILOG,
+        formatter_class=fmt,
     )
     _common(ape)
     ape.add_argument(
@@ -106,7 +166,11 @@ def register(subparsers: Any) -> None:
     ape.set_defaults(func=run_ape)
 
     rpe = sub.add_parser(
-        "rpe", help="relative pose error / drift", description=DESCRIPTION, formatter_class=fmt
+        "rpe",
+        help="relative pose error / drift",
+        description=RPE_DESCRIPTION,
+        epilog=RPE_EPILOG,
+        formatter_class=fmt,
     )
     _common(rpe)
     rpe.add_argument(
@@ -139,10 +203,19 @@ def register(subparsers: Any) -> None:
     rpe.set_defaults(func=run_rpe)
 
     table = sub.add_parser(
-        "table", help="table of several results", description=DESCRIPTION, formatter_class=fmt
+        "table",
+        help="table of several results",
+        description=TABLE_DESCRIPTION,
+        epilog=TABLE_EPILOG,
+        formatter_class=fmt,
     )
     table.add_argument("results", nargs="+", help="result files: our JSON or evo .zip")
-    table.add_argument("--format", choices=("markdown", "csv", "latex"), default="markdown")
+    table.add_argument(
+        "--format",
+        choices=("markdown", "csv", "latex"),
+        default="markdown",
+        help="table format (default markdown)",
+    )
     table.add_argument("--digits", type=int, default=4, help="decimals (default 4)")
     table.add_argument(
         "--out", metavar="FILE", help="write the table to FILE instead of printing it"
@@ -166,6 +239,8 @@ def _options(args: argparse.Namespace) -> Any:
         interpolate=args.interpolate,
         align=args.align,
         align_first=args.align_first,
+        ref_time_unit=args.ref_time_unit,
+        est_time_unit=args.est_time_unit,
     )
 
 

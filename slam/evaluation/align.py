@@ -34,13 +34,16 @@ class Alignment:
     n_used: int
 
     def describe(self) -> str:
-        """One line for the console: method, poses used, scale, rotation angle, translation."""
+        """One line for the console: method, poses used, scale, rotation angle, translation
+        (only what the method estimates; ``none`` says that the estimate is used as given)."""
+        if self.method == "none":
+            return "no alignment (--align none): the estimate is compared as given, scale 1"
+        used = f"alignment {self.method} on {self.n_used} pose{'s' if self.n_used != 1 else ''}"
+        if self.method == "scale":
+            return f"{used}: scale {self.scale:.6f}"
         angle_deg = float(np.degrees(lie.rotation_angles_rad(self.rotation[None])[0]))
         t = ", ".join(f"{v:.4f}" for v in self.translation_m)
-        return (
-            f"alignment {self.method} on {self.n_used} poses: scale {self.scale:.6f}, "
-            f"rotation {angle_deg:.4f} deg, translation [{t}] m"
-        )
+        return f"{used}: scale {self.scale:.6f}, rotation {angle_deg:.4f} deg, translation [{t}] m"
 
     def sim3(self) -> np.ndarray:
         """The 4x4 similarity ref_from_est (rotation scaled)."""

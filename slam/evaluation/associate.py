@@ -78,9 +78,10 @@ def _range_hint(ref: PoseSource, est: PoseSource, t_offset_ns: int) -> str:
         ratio = max(mid_r, mid_e) / min(mid_r, mid_e)
         if 1e8 <= ratio <= 1e10:
             bigger = ref.name if mid_r > mid_e else est.name
+            flag = "--ref-time-unit" if mid_r > mid_e else "--est-time-unit"
             msg += (
                 f"; they differ by a factor of ~{ratio:.2g}: {bigger} probably holds nanoseconds "
-                "where seconds were expected (TUM wants seconds)"
+                f"where seconds were expected: pass {flag} ns"
             )
             return msg
     msg += "; use --t-offset SECONDS if the clocks differ"

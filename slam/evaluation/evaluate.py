@@ -14,9 +14,9 @@ import numpy as np
 
 from slam.core.errors import InputError
 from slam.evaluation import align as align_mod
-from slam.evaluation import metrics
+from slam.evaluation import metrics, timeunits
 from slam.evaluation.associate import Association, associate
-from slam.evaluation.io import PoseSource, read_trajectory
+from slam.evaluation.io import NATIVE_TIME_UNITS, PoseSource, read_trajectory
 from slam.evaluation.results import EvalResult
 
 log = logging.getLogger(__name__)
@@ -38,6 +38,8 @@ class EvalOptions:
     interpolate: bool = False
     align: str = "se3"
     align_first: int | None = None
+    ref_time_unit: str | None = None  # None: the format's own (TUM s, EuRoC csv ns)
+    est_time_unit: str | None = None
 
 
 @dataclass(eq=False)
@@ -85,24 +87,60 @@ class Prepared:
 def load_pair(
     ref_path: str | Path, est_path: str | Path, opts: EvalOptions
 ) -> tuple[PoseSource, PoseSource]:
-    """Read reference and estimate as the options say."""
-    ref = read_trajectory(
-        ref_path,
-        opts.ref_format,
-        topic=opts.ref_topic,
-        times_path=opts.ref_times,
-        role="reference",
-        duplicates=opts.dedupe,
-    )
-    est = read_trajectory(
-        est_path,
-        opts.est_format,
-        topic=opts.est_topic,
-        times_path=opts.est_times,
-        role="estimate",
-        duplicates=opts.dedupe,
-    )
+    """Read reference and estimate as the options say.
+
+    When one input's times are plainly in another unit than it was read in (nanoseconds in a
+    TUM file, say), refuse with the option that fixes it (:mod:`slam.evaluation.timeunits`).
+    """
+    ref, ref_span, ref_err = _read_side(ref_path, "reference", opts)
+    est, est_span, est_err = _read_side(est_path, "estimate", opts)
+    if ref_span is not None and est_span is not None:
+        message = timeunits.mismatch_message(
+            ref_span,
+            est_span,
+            ref.name if ref is not None else str(ref_path),
+            est.name if est is not None else str(est_path),
+        )
+        if message:
+            raise InputError(message)
+    if ref_err is not None:
+        raise ref_err
+    if est_err is not None:
+        raise est_err
+    assert ref is not None and est is not None
     return ref, est
+
+
+def _read_side(
+    path: str | Path, role: str, opts: EvalOptions
+) -> tuple[PoseSource | None, timeunits.TimeSpan | None, InputError | None]:
+    """One input, its time span (None if untimed), or the overflow its times caused."""
+    is_ref = role == "reference"
+    unit = opts.ref_time_unit if is_ref else opts.est_time_unit
+    try:
+        src = read_trajectory(
+            path,
+            opts.ref_format if is_ref else opts.est_format,
+            topic=opts.ref_topic if is_ref else opts.est_topic,
+            times_path=opts.ref_times if is_ref else opts.est_times,
+            role=role,
+            duplicates=opts.dedupe,
+            time_unit=unit,
+        )
+    except timeunits.TimeUnitError as exc:
+        return None, exc.span, exc
+    if not src.timed:
+        return src, None, None
+    native = NATIVE_TIME_UNITS.get(src.format)
+    t_ns = src.trajectory.t_ns
+    span = timeunits.TimeSpan(
+        float(t_ns[0]) * 1e-9,
+        float(t_ns[-1]) * 1e-9,
+        len(t_ns),
+        unit or native or "s",
+        adjustable=native is not None,
+    )
+    return src, span, None
 
 
 def prepare(ref: PoseSource, est: PoseSource, opts: EvalOptions) -> Prepared:

@@ -27,6 +27,14 @@ import numpy as np
 from slam.core.errors import InputError
 from slam.core.trajectory import Trajectory
 from slam.evaluation import lie
+from slam.evaluation.timeunits import (
+    NS_DIGITS,
+    PER_SECOND,
+    UNIT_NAMES,
+    TimeSpan,
+    TimeUnitError,
+    check_unit,
+)
 
 log = logging.getLogger(__name__)
 
@@ -130,6 +138,10 @@ def detect_format(path: Path) -> str:
     raise InputError(f"{path}: empty file (no pose lines)")
 
 
+#: The unit of the time column each text format declares (bags and sequences carry their own).
+NATIVE_TIME_UNITS = {"tum": "s", "run": "s", "kitti": "s", "euroc": "ns"}
+
+
 def read_trajectory(
     path: str | Path,
     fmt: str | None = None,
@@ -140,6 +152,7 @@ def read_trajectory(
     duplicates: str = "error",
     sort: bool = False,
     quiet: bool = False,
+    time_unit: str | None = None,
 ) -> PoseSource:
     """Read a trajectory in any supported format (``fmt`` None: detect it).
 
@@ -150,22 +163,53 @@ def read_trajectory(
     warning) instead of refusing them. What was repaired (rows sorted, duplicates dropped,
     quaternions normalised) is logged as warnings and kept in ``PoseSource.warnings``; ``quiet``
     only keeps it (datasets read their ground truth so: sorted, first of duplicates, quiet).
+    ``time_unit`` (s, ms, us, ns) overrides the unit of a text file's time column
+    (``NATIVE_TIME_UNITS``); times too large for their unit raise
+    :class:`~slam.evaluation.timeunits.TimeUnitError`.
     """
     p = Path(path)
     if not p.exists():
         raise InputError(f"{p}: no such file or folder")
     fmt = fmt or detect_format(p)
+    if time_unit is not None:
+        check_unit(time_unit)
+        if fmt not in NATIVE_TIME_UNITS:
+            raise InputError(
+                f"{p}: a time unit applies to text files (TUM, EuRoC csv, KITTI times), not to "
+                f"{fmt} input, whose stamps carry their unit; drop the time-unit option"
+            )
+    unit = time_unit or NATIVE_TIME_UNITS.get(fmt, "s")
+    try:
+        return _read(p, fmt, topic, times_path, role, duplicates, sort, quiet, unit)
+    except TimeUnitError as exc:
+        if role not in ("reference", "estimate"):
+            raise
+        flag = "--ref-time-unit" if role == "reference" else "--est-time-unit"
+        raise TimeUnitError(f"{role} {exc.what}", exc.span, flag) from None
+
+
+def _read(
+    p: Path,
+    fmt: str,
+    topic: str | None,
+    times_path: str | Path | None,
+    role: str,
+    duplicates: str,
+    sort: bool,
+    quiet: bool,
+    unit: str,
+) -> PoseSource:
     if fmt == "tum":
-        return read_tum(p, duplicates, sort=sort, quiet=quiet)
+        return read_tum(p, duplicates, sort=sort, quiet=quiet, time_unit=unit)
     if fmt == "euroc":
-        return read_euroc_csv(p, duplicates, sort=sort, quiet=quiet)
+        return read_euroc_csv(p, duplicates, sort=sort, quiet=quiet, time_unit=unit)
     if fmt == "kitti":
-        return read_kitti(p, times_path)
+        return read_kitti(p, times_path, unit)
     if fmt == "run":
         if p.is_dir():
-            src = read_tum(p / "trajectory.tum", duplicates, sort=sort, quiet=quiet)
+            src = read_tum(p / "trajectory.tum", duplicates, sort=sort, quiet=quiet, time_unit=unit)
             return _renamed(src, p.name or str(p), str(p), "run")
-        return read_tum(p, duplicates, sort=sort, quiet=quiet)
+        return read_tum(p, duplicates, sort=sort, quiet=quiet, time_unit=unit)
     if fmt == "bag":
         return read_bag(p, topic, role=role, duplicates=duplicates, sort=sort, quiet=quiet)
     if fmt == "sequence":
@@ -257,41 +301,81 @@ def _split(line: str, delimiter: str | None) -> list[str]:
     return line.split(delimiter) if delimiter else line.split()
 
 
-def seconds_to_ns(token: str) -> int:
-    """Exact decimal seconds string -> int ns (digits beyond 1 ns are truncated)."""
+def seconds_to_ns(token: str, unit: str = "s") -> int:
+    """Exact decimal time string in ``unit`` (default seconds) -> int ns (digits beyond 1 ns
+    are truncated)."""
+    digits = NS_DIGITS[unit]
     s = token.strip()
     if "e" in s or "E" in s or "n" in s.lower() or "i" in s.lower():
         value = float(s)
         if not np.isfinite(value):
             raise ValueError(token)
-        return round(value * 1e9)
+        return round(value * 10**digits)
     negative = s.startswith("-")
     s = s.lstrip("+-")
     whole, _, frac = s.partition(".")
-    ns = int(whole or "0") * 1_000_000_000 + int((frac + "000000000")[:9])
+    ns = int(whole or "0") * 10**digits + int((frac + "0" * digits)[:digits] or "0")
     return -ns if negative else ns
 
 
-def _times_ns_from_seconds(path: Path, tokens: list[str], numbers: list[int]) -> np.ndarray:
-    """Decimal seconds strings -> exact int64 ns; one int() per token on the fast path."""
+def _times_ns_from_seconds(
+    path: Path, tokens: list[str], numbers: list[int], unit: str = "s"
+) -> np.ndarray:
+    """Decimal time strings in ``unit`` -> exact int64 ns; one int() per token on the fast path.
+
+    Times beyond int64 nanoseconds (year 2262: e.g. EuRoC's nanoseconds read as seconds) raise
+    :class:`TimeUnitError`, which carries the span so that the caller can name the unit.
+    """
+    digits = NS_DIGITS[unit]
     joined = "".join(tokens)
     try:
-        if "e" in joined or "E" in joined:  # exponent notation: the careful path
-            raise ValueError
-        # "12.5" -> int("12" + "500000000"); the sign of the whole part carries over ("-0.5" too)
-        return np.array(
-            [int(w + (f + "000000000")[:9]) for w, _, f in (t.partition(".") for t in tokens)],
-            dtype=np.int64,
-        )
-    except ValueError:
-        pass  # exponents, "+" signs, or a bad token: the careful path names the line
-    out = np.empty(len(tokens), dtype=np.int64)
-    for i, tok in enumerate(tokens):
         try:
-            out[i] = seconds_to_ns(tok)
+            if "e" in joined or "E" in joined:  # exponent notation: the careful path
+                raise ValueError
+            # "12.5" -> int("12" + "500000000"); the sign of the whole part carries over
+            return np.array(
+                [
+                    int(w + (f + "0" * digits)[:digits])
+                    for w, _, f in (t.partition(".") for t in tokens)
+                ],
+                dtype=np.int64,
+            )
         except ValueError:
-            raise InputError(f"{path}:{numbers[i]}: bad timestamp {tok!r}") from None
-    return out
+            pass  # exponents, "+" signs, or a bad token: the careful path names the line
+        out = np.empty(len(tokens), dtype=np.int64)
+        for i, tok in enumerate(tokens):
+            try:
+                out[i] = seconds_to_ns(tok, unit)
+            except ValueError:
+                raise InputError(f"{path}:{numbers[i]}: bad timestamp {tok!r}") from None
+        return out
+    except OverflowError:
+        raise TimeUnitError(
+            f"{path}: timestamps {float(tokens[0]):.5g}..{float(tokens[-1]):.5g} are too large "
+            f"to be {UNIT_NAMES[unit]}",
+            _span(tokens, unit),
+        ) from None
+
+
+def _span(tokens: list[str], unit: str) -> TimeSpan:
+    first, last = float(tokens[0]), float(tokens[-1])
+    return TimeSpan(first / PER_SECOND[unit], last / PER_SECOND[unit], len(tokens), unit)
+
+
+def _times_ns(path: Path, tokens: list[str], numbers: list[int], unit: str) -> np.ndarray:
+    """:func:`_times_ns_from_seconds`, refusing distinct times that fall in one nanosecond
+    (decimal seconds in a column read as nanoseconds)."""
+    t_ns = _times_ns_from_seconds(path, tokens, numbers, unit)
+    same = np.flatnonzero(np.diff(t_ns) == 0)
+    if len(same) and NS_DIGITS[unit] < 9:
+        i = int(same[0])
+        if float(tokens[i]) != float(tokens[i + 1]):
+            raise TimeUnitError(
+                f"{path}:{numbers[i + 1]}: times {tokens[i]} and {tokens[i + 1]} fall in the "
+                f"same nanosecond when read as {UNIT_NAMES[unit]}",
+                _span(tokens, unit),
+            )
+    return t_ns
 
 
 def _check_finite(path: Path, values: np.ndarray, numbers: list[int]) -> None:
@@ -403,24 +487,36 @@ def _from_pq(
 
 
 def read_tum(
-    path: Path, duplicates: str = "error", *, sort: bool = False, quiet: bool = False
+    path: Path,
+    duplicates: str = "error",
+    *,
+    sort: bool = False,
+    quiet: bool = False,
+    time_unit: str = "s",
 ) -> PoseSource:
-    """TUM: ``t x y z qx qy qz qw`` (seconds; quaternion x,y,z,w)."""
+    """TUM: ``t x y z qx qy qz qw`` (seconds, or ``time_unit``; quaternion x,y,z,w)."""
     lines, numbers, _ = _data_lines(path)
     values = _parse_table(path, lines, numbers, None, 8, "TUM")
     _check_finite(path, values, numbers)
-    t_ns = _times_ns_from_seconds(path, [ln.split(None, 1)[0] for ln in lines], numbers)
+    tokens = [ln.split(None, 1)[0] for ln in lines]
+    t_ns = _times_ns(path, tokens, numbers, time_unit)
     q_wxyz = values[:, [7, 4, 5, 6]]  # TUM stores x,y,z,w -> w,x,y,z
-    stamps_s = values[:, 0].copy()
+    stamps_s = values[:, 0] / PER_SECOND[time_unit]
     return _from_pq(
         path, "tum", t_ns, values[:, 1:4], q_wxyz, numbers, duplicates, stamps_s, sort, quiet
     )
 
 
 def read_euroc_csv(
-    path: Path, duplicates: str = "error", *, sort: bool = False, quiet: bool = False
+    path: Path,
+    duplicates: str = "error",
+    *,
+    sort: bool = False,
+    quiet: bool = False,
+    time_unit: str = "ns",
 ) -> PoseSource:
-    """EuRoC csv: ``t_ns, px, py, pz, qw, qx, qy, qz[, v, bw, ba]`` (header may reorder q)."""
+    """EuRoC csv: ``t_ns, px, py, pz, qw, qx, qy, qz[, v, bw, ba]`` (header may reorder q;
+    ``time_unit`` for files whose first column is not in nanoseconds)."""
     lines, numbers, comments = _data_lines(path)
     header = comments[-1] if comments else ""
     if lines and lines[0][:1].isalpha():  # header without '#'
@@ -430,25 +526,26 @@ def read_euroc_csv(
             raise InputError(f"{path}: empty file (no pose lines)")
     values = _parse_table(path, lines, numbers, ",", 8, "EuRoC csv", at_least=True)
     _check_finite(path, values, numbers)
+    tokens = [ln.split(",", 1)[0].strip() for ln in lines]
     try:
-        t_ns = np.array([int(ln.split(",", 1)[0]) for ln in lines], dtype=np.int64)
-    except ValueError:
-        t_ns = _times_ns_from_seconds(
-            path, [str(float(ln.split(",", 1)[0]) * 1e-9) for ln in lines], numbers
-        )
+        if time_unit != "ns":
+            raise ValueError
+        t_ns = np.array([int(t) for t in tokens], dtype=np.int64)
+    except (ValueError, OverflowError):  # decimals, exponents, another unit or huge values
+        t_ns = _times_ns(path, tokens, numbers, time_unit)
     q_cols = [4, 5, 6, 7]  # EuRoC: w,x,y,z
     names = [c.strip().lower() for c in header.lstrip("#").split(",")]
     if len(names) >= 8 and ("qw" in names[7] or names[7].endswith("_w") or names[7] == "w"):
         q_cols = [7, 4, 5, 6]  # header says x,y,z,w -> reorder to w,x,y,z
-    stamps_s = np.divide(values[:, 0], 1e9)  # evo: float(ns string) / 1e9
+    stamps_s = values[:, 0] / PER_SECOND[time_unit]  # evo: float(ns string) / 1e9
     q_wxyz = values[:, q_cols]
     return _from_pq(
         path, "euroc", t_ns, values[:, 1:4], q_wxyz, numbers, duplicates, stamps_s, sort, quiet
     )
 
 
-def read_kitti_times(path: Path) -> np.ndarray:
-    """One time in seconds per line -> int64 ns."""
+def read_kitti_times(path: Path, time_unit: str = "s") -> np.ndarray:
+    """One time in seconds (or ``time_unit``) per line -> int64 ns."""
     lines, numbers, _ = _data_lines(path)
     tokens = []
     for line, number in zip(lines, numbers):
@@ -456,12 +553,14 @@ def read_kitti_times(path: Path) -> np.ndarray:
         if len(parts) != 1:
             raise InputError(f"{path}:{number}: malformed times line: expected one number")
         tokens.append(parts[0])
-    t_ns = _times_ns_from_seconds(path, tokens, numbers)
+    t_ns = _times_ns(path, tokens, numbers, time_unit)
     _check_times(path, t_ns, numbers)
     return t_ns
 
 
-def read_kitti(path: Path, times_path: str | Path | None = None) -> PoseSource:
+def read_kitti(
+    path: Path, times_path: str | Path | None = None, time_unit: str = "s"
+) -> PoseSource:
     """KITTI: 12 values per line, the first three rows of world_from_body."""
     lines, numbers, _ = _data_lines(path)
     values = _parse_table(path, lines, numbers, None, 12, "KITTI")
@@ -482,7 +581,7 @@ def read_kitti(path: Path, times_path: str | Path | None = None) -> PoseSource:
             log.info("using times file %s for %s", sibling, path)
     timed = times_path is not None
     if times_path is not None:
-        t_ns = read_kitti_times(Path(times_path))
+        t_ns = read_kitti_times(Path(times_path), time_unit)
         if len(t_ns) != n:
             raise InputError(
                 f"{times_path}: {len(t_ns)} times for {n} KITTI poses in {path}; they must match"
