@@ -62,6 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--config",
         default=None,
+        metavar="PRESET|FILE",
         help=f"a preset ({', '.join(sorted(PRESETS))}) or a YAML file; "
         "default: the stereo-inertial preset when the sequence has IMU, else stereo-vo; "
         "every key: slam config show [PRESET]",
