@@ -10,6 +10,7 @@ every loaded config before a run. This module imports config modules only, never
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import numbers
 import types
@@ -191,7 +192,9 @@ def _apply(obj: Any, overrides: dict[str, Any], where: str) -> Any:
     for key, value in overrides.items():
         if key not in names:
             raise SlamError(
-                f"unknown config key {where}{key!r}; valid keys: {', '.join(sorted(names))}"
+                f"unknown config key {where}{key}{_did_you_mean(obj, key, where)}; "
+                f"valid keys{f' of {where[:-1]}' if where else ''}: {', '.join(sorted(names))} "
+                "(every key: slam config show)"
             )
         current = getattr(obj, key)
         if dataclasses.is_dataclass(current) and not isinstance(current, type):
@@ -218,6 +221,30 @@ def _apply(obj: Any, overrides: dict[str, Any], where: str) -> Any:
                 raise SlamError(f"config key {where}{key} must be a number, got {value!r}")
             changes[key] = value
     return dataclasses.replace(obj, **changes)
+
+
+def _did_you_mean(obj: Any, key: str, where: str) -> str:
+    """`` (did you mean `frontend.max_features`?)`` for a misspelt key: the closest name at the
+    same level, else the same or a close name one level down (a key put at the wrong level);
+    ``""`` when nothing is close."""
+    names = [f.name for f in dataclasses.fields(obj)]
+    close = [f"{where}{n}" for n in difflib.get_close_matches(key, names, n=1)]
+    if not close:
+        sections = {
+            f.name: [g.name for g in dataclasses.fields(sub)]
+            for f in dataclasses.fields(obj)
+            if dataclasses.is_dataclass(sub := getattr(obj, f.name)) and not isinstance(sub, type)
+        }
+        close = [f"{where}{s}.{key}" for s, sub_names in sections.items() if key in sub_names]
+        if not close:
+            close = [
+                f"{where}{s}.{n}"
+                for s, sub_names in sections.items()
+                for n in difflib.get_close_matches(key, sub_names, n=1, cutoff=0.8)
+            ]
+    if not close:
+        return ""
+    return " (did you mean " + " or ".join(f"`{c}`" for c in close) + "?)"
 
 
 def validate_config(cfg: SlamConfig) -> SlamConfig:

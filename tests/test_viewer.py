@@ -121,3 +121,58 @@ def test_a_stuck_viewer_does_not_hold_up_the_run(monkeypatch, tmp_path) -> None:
     assert res.stats["frames_tracked"] == seq.num_frames
     assert res.error is None
     assert time.monotonic() - t0 < 60
+
+
+class _TimeLog:
+    """A recording that keeps every ``set_time`` call and ignores the rest."""
+
+    def __init__(self) -> None:
+        self.times: list[tuple[str, dict[str, Any]]] = []
+
+    def set_time(self, timeline: str, **kwargs: Any) -> None:
+        self.times.append((timeline, kwargs))
+
+    def __getattr__(self, name: str) -> Any:
+        return lambda *args, **kwargs: None
+
+
+def test_viewer_time_is_a_duration_since_the_first_frame() -> None:
+    """Not a timestamp: synthetic stamps start at 0, which rerun would show as 1970-01-01."""
+    import numpy as np
+
+    from datasets.memory import random_sequence
+    from slam.core.messages import LoopCorrection, TrackingResult
+    from slam.runtime import wiring
+    from slam.runtime.viewer import TIMELINE, ViewerSession
+
+    seq = random_sequence(num_frames=3)  # EuRoC-like epoch stamps
+    t0 = int(seq.frame_times_ns()[0])
+    assert t0 > 10**18
+    rec = _TimeLog()
+    cfg = preset_config("stereo-vo")
+    cfg.player.sequential = True
+    viewer = wiring.build(seq, cfg, ViewerSession(rec, "save:x.rrd")).viewer
+    assert viewer is not None
+    empty = np.zeros((0, 2))
+    viewer.process(
+        TrackingResult(
+            t0 + 2_400_000_000,
+            48,
+            "tracking",
+            0,
+            np.eye(4),
+            False,
+            -1,
+            0,
+            0,
+            empty,
+            empty[:, 0],
+            1.0,
+        )
+    )
+    viewer.process(LoopCorrection(t0 + 3_000_000_000, 0, 5, 1, 40, 1, {0: np.eye(4)}, {}))
+    assert viewer.failed_logs == 0
+    assert rec.times == [
+        (TIMELINE, {"duration": np.timedelta64(2_400_000_000, "ns")}),
+        (TIMELINE, {"duration": np.timedelta64(3_000_000_000, "ns")}),
+    ]

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 
 from slam.core.errors import SlamError
@@ -22,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "info": ("tools.cmd_info", "summarise a sequence: topics, rates, gaps, calibration"),
     "convert": ("tools.cmd_convert", "write any sequence source as our MCAP"),
     "run": ("tools.cmd_run", "track a sequence; trajectory, keyframes, stats, live rerun view"),
+    "config": ("tools.cmd_config", "every configuration key with its default, unit and doc"),
     "eval": ("tools.cmd_eval", "trajectory error (APE, RPE, drift) against ground truth"),
     "bench": ("tools.cmd_bench", "run the benchmark suite and tabulate accuracy and speed"),
     "fuse": ("tools.cmd_fuse", "dense mesh by TSDF fusion (RGB-D folder, or sequence + poses)"),
@@ -86,6 +88,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"slam {args.command}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # `slam config show | head`: the reader went away; not an error
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no flush error at exit
+        return 141
 
 
 if __name__ == "__main__":

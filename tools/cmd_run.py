@@ -44,24 +44,28 @@ then score it:  slam eval ape SEQ DIR --align se3
 def register(sub: argparse._SubParsersAction) -> None:
     from slam.config import PRESETS
     from slam.runtime.viewer import RERUN_MODES
+    from tools.seq_args import SEQUENCE_HELP, add_sequence_args
 
     p = sub.add_parser(
         "run",
         help="track a sequence (trajectory, keyframes, stats) with optional live rerun view",
-        description="Run the SLAM pipeline on a sequence: our MCAP, a ROS 2 bag (MCAP) with "
-        "Kalibr calibration, or an EuRoC/TUM-VI folder.",
+        description="Run the SLAM pipeline on a sequence SEQ.\n\n"
+        + SEQUENCE_HELP
+        + "\nThe configuration is a preset or a YAML file (--config); every key with its "
+        "default,\nunit and what it does: slam config show [PRESET]",
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    from tools.seq_args import add_sequence_args
 
     add_sequence_args(p)
     p.add_argument("--out", required=True, type=Path, help="output folder (created)")
     p.add_argument(
         "--config",
         default=None,
+        metavar="PRESET|FILE",
         help=f"a preset ({', '.join(sorted(PRESETS))}) or a YAML file; "
-        "default: the stereo-inertial preset when the sequence has IMU, else stereo-vo",
+        "default: the stereo-inertial preset when the sequence has IMU, else stereo-vo; "
+        "every key: slam config show [PRESET]",
     )
     p.add_argument(
         "--rerun",

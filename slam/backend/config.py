@@ -9,7 +9,8 @@ from slam.core.bounds import bounded
 
 @dataclass(frozen=True)
 class BackendConfig:
-    """Every tunable of the back end. Units are in the names; defaults suit EuRoC-grade IMUs."""
+    """Every tunable of the back end. Units are in the names (else ``unit=``); defaults suit
+    EuRoC-grade IMUs."""
 
     # --- IMU sanitising -------------------------------------------------------------------------
     max_accel_m_s2: float = bounded(16.0 * 9.81, gt=0)
@@ -47,9 +48,9 @@ class BackendConfig:
     three times as many (the newest) are used."""
     moving_init_min_span_s: float = bounded(1.5, ge=0)
     """Minimum time span of the keyframes used for the moving-start alignment."""
-    moving_init_max_gravity_error: float = bounded(0.5, gt=0)
-    """Reject the unconstrained gravity solution if | |g| - g0 | exceeds this (m/s^2) and retry
-    with more keyframes."""
+    moving_init_max_gravity_error: float = bounded(0.5, gt=0, unit="m/s^2")
+    """Reject the unconstrained gravity solution if | |g| - g0 | exceeds this and retry with
+    more keyframes."""
 
     # --- smoother -------------------------------------------------------------------------------
     lag_s: float = bounded(1.0, gt=0)

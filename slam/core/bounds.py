@@ -1,9 +1,12 @@
-"""Allowed ranges of numeric config fields, kept in each field's metadata.
+"""Allowed ranges and units of numeric config fields, kept in each field's metadata.
 
 Every ``int``/``float`` field of every config dataclass nested under ``SlamConfig`` is declared
 with :func:`bounded` (``tests/test_config_bounds.py`` fails on one that is not), and
 ``slam.config.validate_config`` checks them all on every loaded config before a run. This
 module imports nothing else of the project, so every config module can use it.
+
+A field's unit has one home: the end of its name (``_m``, ``_px``, ``_m_s2``: :data:`NAME_UNITS`)
+or, when the name has none, ``bounded(..., unit=...)``; :func:`field_unit` reads either.
 """
 
 from __future__ import annotations
@@ -14,6 +17,25 @@ from typing import Any, TypeVar
 T = TypeVar("T", int, float)
 
 METADATA_KEY = "bounds"
+UNIT_KEY = "unit"
+
+NAME_UNITS: dict[str, str] = {
+    "_m_per_sqrt_s": "m/sqrt(s)",
+    "_rad_per_sqrt_s": "rad/sqrt(s)",
+    "_deg_per_m": "deg/m",
+    "_keyframes": "keyframes",
+    "_frames": "frames",
+    "_m_s2": "m/s^2",
+    "_rad_s": "rad/s",
+    "_m_s": "m/s",
+    "_deg": "deg",
+    "_rad": "rad",
+    "_px": "px",
+    "_ms": "ms",
+    "_m": "m",
+    "_s": "s",
+}
+"""Field-name endings that spell a unit (the longest matching ending wins)."""
 
 
 @dataclass(frozen=True)
@@ -56,12 +78,14 @@ def bounded(
     lt_field: str = "",
     le_field: str = "",
     hint: str = "",
+    unit: str = "",
 ) -> T:
     """A dataclass field with ``default`` and its allowed range in the field's metadata.
 
     Exactly one lower bound (``ge``: >=, ``gt``: >) and at most one upper bound (``le``, ``lt``;
     none: unbounded above). ``lt_field``/``le_field``: the value must also stay below (or at
-    most) another field of the same config, e.g. a minimum below its maximum.
+    most) another field of the same config, e.g. a minimum below its maximum. ``unit``: only for
+    a field whose name does not end in one (:data:`NAME_UNITS`).
     """
     if (ge is None) == (gt is None):
         raise TypeError("bounded() needs exactly one lower bound: ge= or gt=")
@@ -82,10 +106,24 @@ def bounded(
     )
     if not bounds.contains(default):
         raise ValueError(f"default {default!r} outside its bounds {bounds.interval()}")
-    return field(default=default, metadata={METADATA_KEY: bounds})
+    metadata: dict[str, Any] = {METADATA_KEY: bounds}
+    if unit:
+        metadata[UNIT_KEY] = unit
+    return field(default=default, metadata=metadata)
 
 
 def field_bounds(f: Any) -> Bounds | None:
     """The :class:`Bounds` of a ``dataclasses.Field``, or None when it has none."""
     b = f.metadata.get(METADATA_KEY)
     return b if isinstance(b, Bounds) else None
+
+
+def name_unit(name: str) -> str:
+    """The unit a field name ends in (``max_depth_m``: ``m``), or ``""``."""
+    endings = [e for e in NAME_UNITS if name.endswith(e)]
+    return NAME_UNITS[max(endings, key=len)] if endings else ""
+
+
+def field_unit(f: Any) -> str:
+    """The unit of a ``dataclasses.Field``: from its metadata, else its name; ``""`` for none."""
+    return str(f.metadata.get(UNIT_KEY, "")) or name_unit(f.name)

@@ -21,11 +21,12 @@ def log_loop_correction(
     ``world/loop/path``: the corrected keyframe path (id order); ``world/loop/edges``: one
     segment per loop between the two keyframes' corrected positions (``loop_pairs`` as
     (query, match) ids, default: this correction's loop); ``world/loop/before``: the same
-    keyframes at ``keyframe_positions`` (e.g. their odometry positions) when given.
+    keyframes at ``keyframe_positions`` (e.g. their odometry positions) when given. Logged at
+    the stream's current time: the caller sets it (the viewer: ``correction.t_ns`` on its
+    timeline).
     """
     import rerun as rr
 
-    rec.set_time("sensor_time", timestamp=np.datetime64(int(correction.t_ns), "ns"))
     poses = correction.corrected_keyframe_poses
     ids = sorted(poses)
     if not ids:

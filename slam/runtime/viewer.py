@@ -11,6 +11,10 @@ costs one warning: without a display, ``spawn`` records to a file instead. ``ser
 rerun's own server (``rerun --serve-web --bind``) as a separate process, so the final map can
 still be looked at after the run (``--keep-viewer``). Images are JPEG-compressed
 (FIELD_NOTES: ~2.4 ms and 60 kB per frame instead of 372 kB raw).
+
+Time is one ``sequence_time`` timeline, a duration since the sequence's first frame, for every
+sequence: stamps are epoch nanoseconds in EuRoC but start at 0 in synthetic sequences, which
+rerun would show as 1970-01-01 if they were timestamps.
 """
 
 from __future__ import annotations
@@ -48,6 +52,7 @@ from slam.runtime.stage import Stage
 log = logging.getLogger(__name__)
 
 RERUN_MODES = "spawn | save:FILE.rrd | serve[:HOST] | connect:URL | none"
+TIMELINE = "sequence_time"
 LOCALHOST = "127.0.0.1"
 
 
@@ -67,7 +72,7 @@ def _blueprint() -> Any:
             column_shares=[3, 2],
         ),
         # A live run: the view follows the newest data.
-        rrb.TimePanel(state="collapsed", play_state="following"),
+        rrb.TimePanel(state="collapsed", play_state="following", timeline=TIMELINE),
         collapse_panels=True,
     )
 
@@ -245,7 +250,8 @@ def open_recording(
 
 
 class RerunStage(Stage):
-    """Consumes TrackingResult / Keyframe / Estimate snapshots and logs them."""
+    """Consumes TrackingResult / Keyframe / Estimate snapshots and logs them, at their time
+    since ``origin_ns`` (the sequence's first frame) on the :data:`TIMELINE`."""
 
     def __init__(
         self,
@@ -254,6 +260,7 @@ class RerunStage(Stage):
         cfg: VizConfig,
         ground_truth: Trajectory | None,
         threaded: bool,
+        origin_ns: int,
     ):
         super().__init__("viewer", maxsize=8, threaded=threaded)
         self.failed_logs = 0
@@ -271,6 +278,7 @@ class RerunStage(Stage):
         self.last_state = ""
         self.n_results = 0
         self.static_logged = False
+        self.origin_ns = int(origin_ns)
 
     def _log_static(self) -> None:
         """The rig, once, from the viewer's own thread (a logging call may block; the stage's
@@ -296,7 +304,7 @@ class RerunStage(Stage):
         )
 
     def _time(self, t_ns: int) -> None:
-        self.rec.set_time("sensor_time", timestamp=np.datetime64(int(t_ns), "ns"))
+        self.rec.set_time(TIMELINE, duration=np.timedelta64(int(t_ns) - self.origin_ns, "ns"))
 
     def process(self, msg: Any) -> None:
         try:

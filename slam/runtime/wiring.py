@@ -82,7 +82,11 @@ def build(seq: Sequence, cfg: SlamConfig, session: ViewerSession | None) -> Pipe
     recorder = Recorder(seq.start_ns())
     viewer = None
     if session is not None:
-        viewer = RerunStage(session.rec, seq.calibration, cfg.viz, seq.ground_truth, threaded)
+        frame_times = seq.frame_times_ns()
+        origin = int(frame_times[0]) if len(frame_times) else seq.start_ns()
+        viewer = RerunStage(
+            session.rec, seq.calibration, cfg.viz, seq.ground_truth, threaded, origin
+        )
     loop = LoopClosureStage(seq.calibration, cfg.loop, threaded, idle) if cfg.loop_closure else None
     frontend = FrontEnd(
         seq.calibration,
