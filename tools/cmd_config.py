@@ -94,6 +94,8 @@ def render(cfg: Any, title: str) -> str:
         f"{title} Change any key in a YAML file (nested: `frontend:` then `  max_features: "
         "300`, optionally `preset: NAME` first) and pass it with `slam run --config FILE`.",
         WIDTH,
+        break_on_hyphens=False,  # never split a file path
+        break_long_words=False,
     )
     section = None
     for k in describe(cfg):
