@@ -21,10 +21,11 @@ class FrontendStage(Stage):
 
     def process(self, msg: Any) -> None:
         assert isinstance(msg, StereoFrame)
-        result, keyframe = self.frontend.process(msg)
+        result = self.frontend.track(msg)
         for correction in self.frontend.take_corrections():
             self.emit(correction)
-        self.emit(result)
+        self.emit(result)  # the pose goes out before the keyframe work (FrontEnd.after_pose)
+        keyframe = self.frontend.after_pose()
         if keyframe is not None:
             self.emit(keyframe)
 

@@ -167,7 +167,11 @@ class LoopClosureStage(ProcessStage):
         threaded: bool,
         idle_worker: bool = False,
     ):
-        """``idle_worker``: run the worker process under SCHED_IDLE (``slam.runtime.priority``)."""
+        """``idle_worker``: run the worker process under SCHED_IDLE (``slam.runtime.priority``).
+        A sequential run (not ``threaded``) is deterministic, so its global adjustment gets no
+        wall-clock budget."""
+        if not threaded:
+            cfg = dataclasses.replace(cfg, global_ba_budget_fraction=0.0)
         super().__init__(
             "loop",
             256,
