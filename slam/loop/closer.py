@@ -663,10 +663,12 @@ class LoopCloser:
         self.map_generation += 1
         self.store.set_corrected(self.corrected_poses())
 
-    def global_adjustment(self) -> GlobalBaResult | None:
+    def global_adjustment(self, spent_s: float = 0.0) -> GlobalBaResult | None:
         """Global bundle adjustment (:mod:`slam.loop.global_ba`) of the component holding the
         newest active loop, starting from the pose graph's result; its keyframe poses replace
-        the corrected ones. None (nothing changed) without an active loop or when disabled."""
+        the corrected ones. None (nothing changed) without an active loop or when disabled.
+        ``spent_s``: time the end of the run has already used (the loop backlog), taken off
+        the time budget."""
         active = [r for r in self.loops if r.active]
         if not self.cfg.global_ba or not active:
             return None
@@ -694,7 +696,7 @@ class LoopCloser:
             span_s = (
                 max(self.t_ns_of[k] for k in nodes) - min(self.t_ns_of[k] for k in nodes)
             ) * 1e-9
-            budget_s = c.global_ba_budget_fraction * span_s
+            budget_s = max(c.global_ba_budget_fraction * span_s - spent_s, 0.0)
         fusion_pairs = searched = 0
         if c.global_ba_fusion:
             share = None if budget_s is None else c.global_ba_fusion_budget_share * budget_s

@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import threading
+import time
 from typing import Any
 
 import numpy as np
@@ -92,9 +93,11 @@ class LoopCore(WorkerCore):
         ]
 
     def finish(self, interrupted: bool) -> LoopFinal:
-        """The global adjustment (skipped when the run was interrupted), then the state."""
+        """The global adjustment (skipped when the run was interrupted; its time budget less
+        what the end of the run has already taken), then the state."""
         closer = self.closer
-        ba = None if interrupted else closer.global_adjustment()
+        spent_s = 0.0 if self.end_began_s is None else time.perf_counter() - self.end_began_s
+        ba = None if interrupted else closer.global_adjustment(spent_s)
         summary = dict(closer.stats.summary())
         summary["global_ba"] = None if ba is None else ba.summary()
         summary["global_ba_skipped"] = "run interrupted" if interrupted else None

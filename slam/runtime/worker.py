@@ -34,6 +34,11 @@ class WorkerDied(RuntimeError):
 class WorkerCore(ABC):
     """The part of a stage that may run in a worker process: messages in, outputs out."""
 
+    end_began_s: float | None = None
+    """``time.perf_counter()`` when the run's end began in the worker process (set before
+    the backlog is drained), so :meth:`finish` can count the backlog against a time budget.
+    None inline."""
+
     @abstractmethod
     def handle(self, msg: Any) -> list[Any]:
         """Outputs for one input message (sent back to the stage in order)."""
@@ -134,6 +139,7 @@ def _worker_main(
     live = threading.Thread(target=serve, name="live")
     live.start()
     live.join()
+    core.end_began_s = time.perf_counter()
     if handed_over:
         step(handed_over[0])
     while not ended and not failed:  # the end of the run: the backlog, at full priority
