@@ -113,6 +113,10 @@ class FrontendConfig:
     # bounds: the largest std of 8-bit values is 127.5
     textureless_max_std: float = bounded(3.0, ge=0, lt=127.5)
     """A frame with less intensity spread than this is textureless."""
+    opencv_threads: int = bounded(0, ge=0, le=64)
+    """Threads OpenCV may use in the run's main process (the front end's KLT and PnP); 0:
+    OpenCV's default, one per core. One keeps the KLT from waiting for a helper thread that
+    the worker processes hold off a core."""
     use_gyro_prediction: bool = True
     """Predict feature positions by integrating the gyro between frames."""
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from typing import Any
 
+import cv2
+
 from slam.core.messages import StereoFrame
 from slam.frontend.tracker import FrontEnd
 from slam.runtime.stage import Stage
@@ -18,6 +20,8 @@ class FrontendStage(Stage):
     def __init__(self, frontend: FrontEnd, threaded: bool, queue_size: int):
         super().__init__("frontend", maxsize=queue_size, threaded=threaded)
         self.frontend = frontend
+        threads = frontend.cfg.opencv_threads
+        cv2.setNumThreads(threads if threads > 0 else -1)  # this process's OpenCV; -1: default
 
     def process(self, msg: Any) -> None:
         assert isinstance(msg, StereoFrame)
