@@ -94,9 +94,10 @@ class GlobalBaParams:
     observations said."""
     max_keyframes_per_landmark: int = 0
     """Keep at most about this many of each (fused) landmark's keyframe observations, evenly
-    spread over the keyframes that saw it, its first and last always (0: all). A landmark
-    tracked through 40 keyframes a few centimetres apart adds 40 nearly identical
-    constraints; the iteration's cost grows with every one."""
+    spread over the keyframes that saw it, its first and last always (0: all); a keyframe
+    left with fewer than twice ``min_observations`` keeps all of its own. A landmark tracked
+    through 40 keyframes a few centimetres apart adds 40 nearly identical constraints; the
+    iteration's cost grows with every one."""
     anchor: str = "weak"
     """Gauge: "weak" priors on every keyframe's initial pose (no single keyframe trusted: the
     first ones may predate the back end's initialisation), or "fixed" (``fixed_id`` held)."""
@@ -259,7 +260,12 @@ def global_bundle_adjustment(
         pts_cam[keep],
     )
     if p.max_keyframes_per_landmark > 0:
-        thin = _spread_rows(lid, t_row[keep], p.max_keyframes_per_landmark)
+        thin = np.zeros(len(lid), bool)
+        thin[_spread_rows(lid, t_row[keep], p.max_keyframes_per_landmark)] = True
+        # A keyframe the thinning would leave short of observations keeps all of its own.
+        kfs, counts = np.unique(kf_of[thin], return_counts=True)
+        enough = set(kfs[counts >= 2 * p.min_observations].tolist())
+        thin |= ~np.isin(kf_of, list(enough))
         kf_of, lid, left, right, pts_cam = (a[thin] for a in (kf_of, lid, left, right, pts_cam))
     # Landmarks in enough keyframes, each with an initial guess from its first usable keyframe.
     uniq, inverse, counts = np.unique(lid, return_inverse=True, return_counts=True)
