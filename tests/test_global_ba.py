@@ -185,5 +185,7 @@ def test_thinned_observations_keep_the_result(loop_world) -> None:
     )
     assert full is not None and thin is not None
     assert thin.observations < 0.85 * full.observations
-    after = ate_se3_rmse_m(np.array([thin.world_from_body[k][:3, 3] for k in poses]), true[:, :3, 3])
+    after = ate_se3_rmse_m(
+        np.array([thin.world_from_body[k][:3, 3] for k in poses]), true[:, :3, 3]
+    )
     assert after < 0.01

@@ -266,7 +266,8 @@ def global_bundle_adjustment(
         kfs, counts = np.unique(kf_of[thin], return_counts=True)
         enough = set(kfs[counts >= 2 * p.min_observations].tolist())
         thin |= ~np.isin(kf_of, list(enough))
-        kf_of, lid, left, right, pts_cam = (a[thin] for a in (kf_of, lid, left, right, pts_cam))
+        kf_of, lid = kf_of[thin], lid[thin]
+        left, right, pts_cam = left[thin], right[thin], pts_cam[thin]
     # Landmarks in enough keyframes, each with an initial guess from its first usable keyframe.
     uniq, inverse, counts = np.unique(lid, return_inverse=True, return_counts=True)
     depth = pts_cam[:, 2]

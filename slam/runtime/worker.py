@@ -182,9 +182,20 @@ class WorkerProcess:
             daemon=True,
             name=f"slam-{name}",
         )
-        self.proc.start()
+        self.proc.start()  # it imports and builds its core while the caller goes on
+        self.pid: int | None = None
+        self._start_timeout_s = start_timeout_s
+        self._on_item = on_item
+        self._on_died = on_died
+
+    def wait_ready(self) -> None:
+        """Wait for the worker's :class:`WorkerReady` (once; workers started one after the
+        other start up side by side) and start receiving its outputs."""
+        if self.pid is not None:
+            return
+        name = self.name
         first: Any = None
-        deadline = time.monotonic() + start_timeout_s
+        deadline = time.monotonic() + self._start_timeout_s
         while first is None and time.monotonic() < deadline:
             try:
                 first = self.outbox.get(timeout=0.5)
@@ -196,8 +207,6 @@ class WorkerProcess:
             detail = f": {first.error}" if isinstance(first, WorkerFailed) else ""
             raise RuntimeError(f"the {name} worker process did not start{detail}")
         self.pid = first.pid
-        self._on_item = on_item
-        self._on_died = on_died
         self.receiver = threading.Thread(target=self._receive, name=f"{name}-rx", daemon=True)
         self.receiver.start()
 
@@ -226,6 +235,9 @@ class WorkerProcess:
     def stop(self, interrupted: bool, timeout_s: float, abandon: threading.Event | None) -> bool:
         """End of input: wait up to ``timeout_s`` (or until ``abandon`` is set) for the worker's
         last output, then end the process. False when it had to be terminated."""
+        if self.pid is None:  # never waited for: nothing of it was used
+            self.terminate()
+            return False
         if interrupted:
             self.hurry.set()
         self.begin_end()
@@ -285,9 +297,14 @@ class ProcessStage(Stage):
             self._proc = WorkerProcess(
                 name, make_core, args, self._on_item, self._on_died, role, idle
             )
-            self.worker_pid = self._proc.pid
         else:
             self._core = make_core(*args)
+
+    def start(self) -> None:
+        if self._proc is not None:
+            self._proc.wait_ready()
+            self.worker_pid = self._proc.pid
+        super().start()
 
     # -- to implement ------------------------------------------------------------------------
     def on_output(self, item: Any) -> None:
