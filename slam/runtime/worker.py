@@ -223,6 +223,7 @@ class WorkerProcess:
                 return
 
     def put(self, msg: Any) -> None:
+        self.wait_ready()  # a stage used before it was started
         self.inbox.put(msg)
 
     def begin_end(self) -> None:
