@@ -82,3 +82,25 @@ def test_stereo_from_known_points_finds_the_same_matches(shared_data):
         shifted.ok[moved]
         & (np.linalg.norm(shifted.pixels_right[moved] - full.pixels_right[moved], axis=1) < 1.0)
     ).mean() < 0.2
+
+
+def test_pose_goes_out_before_the_keyframe_work(shared_data):
+    """``track`` gives the pose with the keyframe's id; ``after_pose`` then makes that very
+    keyframe. The pose's latency excludes the keyframe work, which is timed on its own."""
+    seq = _open(shared_data)
+    cfg = FrontendConfig(keyframe_max_interval_s=0.2)  # still rig: keyframes by time
+    fe = FrontEnd(seq.calibration, cfg)
+    announced, made = [], []
+    for frame in list(seq.iter_frames())[:30]:
+        res = fe.track(frame)
+        features_at_pose = len(res.feature_pixels)
+        kf = fe.after_pose()
+        if res.is_keyframe:
+            announced.append(res.keyframe_id)
+        if kf is not None:
+            made.append(kf.keyframe_id)
+            assert kf.t_ns == res.t_ns
+            if res.state == "tracking":  # a keyframe adds new features after the pose
+                assert len(fe.px) >= features_at_pose
+    assert len(made) >= 3 and announced == made
+    assert len(fe.stats.after_pose_ms) == 30

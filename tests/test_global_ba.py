@@ -16,6 +16,7 @@ from slam.loop.global_ba import (
     GlobalBaParams,
     KeyframeObservations,
     _fuse,
+    _spread_rows,
     global_bundle_adjustment,
 )
 from slam.posegraph import PoseEdge, information_from_sigmas
@@ -159,3 +160,32 @@ def test_time_budget_keeps_the_estimate_so_far(loop_world) -> None:
     assert spent.rms_px_after < spent.rms_px_before
     assert ate(spent) < ate_se3_rmse_m(odom[:, :3, 3], true[:, :3, 3])
     assert abs(ate(ample) - ate(free)) < 1e-4
+
+
+def test_spread_rows_keeps_first_last_and_spreads() -> None:
+    group = np.array([7] * 20 + [3] * 3 + [5])
+    t = np.concatenate([np.arange(20)[::-1], [2, 0, 1], [4]])  # not in time order
+    kept = _spread_rows(group, t, 5)
+    assert np.all(np.diff(kept) > 0)  # original order
+    by_group = {g: sorted(t[kept][group[kept] == g].tolist()) for g in (7, 3, 5)}
+    assert by_group[3] == [0, 1, 2] and by_group[5] == [4]  # small groups whole
+    seven = by_group[7]
+    assert seven[0] == 0 and seven[-1] == 19 and 5 <= len(seven) <= 6
+    assert max(np.diff(seven)) <= 5  # evenly spread, no long hole
+
+
+def test_thinned_observations_keep_the_result(loop_world) -> None:
+    """Each landmark kept in at most 2 of its 3 keyframes: a third fewer observations, the
+    drift still removed."""
+    calib, obs, true, odom, edges, pairs, t_ns = loop_world
+    poses = {k: odom[k] for k in range(len(odom))}
+    full = global_bundle_adjustment(calib, obs, poses, edges, pairs, 0, t_ns, GlobalBaParams())
+    thin = global_bundle_adjustment(
+        calib, obs, poses, edges, pairs, 0, t_ns, GlobalBaParams(max_keyframes_per_landmark=2)
+    )
+    assert full is not None and thin is not None
+    assert thin.observations < 0.85 * full.observations
+    after = ate_se3_rmse_m(
+        np.array([thin.world_from_body[k][:3, 3] for k in poses]), true[:, :3, 3]
+    )
+    assert after < 0.01

@@ -117,7 +117,8 @@ def test_fusion_search_links_the_same_points_across_passes(loop_scene, closed) -
     _, kfs = loop_scene
     closer, _ = closed
     truth = {s.keyframe.keyframe_id: s.world_from_body_true for s in kfs}
-    pairs = closer._fusion_pairs(list(truth))
+    pairs, searched = closer._fusion_pairs(list(truth))
+    assert searched == len(truth)
     kf_pairs = {(q, m) for q, _, m, _ in pairs}
     assert len(kf_pairs) > len(closer.loops) >= 1
     gap_ns = closer.cfg.global_ba_fusion_min_gap_s * 1e9
@@ -276,3 +277,17 @@ def test_second_segment_is_merged_by_two_agreeing_loops(loop_scene, vocab) -> No
     assert before > 0.5 and after < 0.25, (before, after)
     last = closer.last_correction
     assert last is not None and set(last.map_from_odom) == {0, 1}
+
+
+def test_fusion_search_stops_at_its_deadline(loop_scene, closed) -> None:
+    """A spent deadline searches nothing; the search visits keyframes spread over the run
+    (every 8th first), so a cut search still covers the whole map."""
+    import time
+
+    _, kfs = loop_scene
+    closer, _ = closed
+    ids = [s.keyframe.keyframe_id for s in kfs]
+    pairs, searched = closer._fusion_pairs(ids, deadline=time.perf_counter() - 1.0)
+    assert (pairs, searched) == ([], 0)
+    full, searched = closer._fusion_pairs(ids, deadline=time.perf_counter() + 600.0)
+    assert searched == len(ids) and len(full) > 0

@@ -92,7 +92,7 @@ def test_stage_error_is_reported_with_stage_name_and_outputs_saved(
     from slam.frontend import tracker
 
     calls = {"n": 0}
-    original = tracker.FrontEnd.process
+    original = tracker.FrontEnd.track
 
     def failing(self, frame):
         calls["n"] += 1
@@ -100,7 +100,7 @@ def test_stage_error_is_reported_with_stage_name_and_outputs_saved(
             raise RuntimeError("injected failure")
         return original(self, frame)
 
-    monkeypatch.setattr(tracker.FrontEnd, "process", failing)
+    monkeypatch.setattr(tracker.FrontEnd, "track", failing)
     res = run_slam(short_seq, _cfg(False), tmp_path, progress=False)
     assert res.error is not None and "frontend" in str(res.error)
     stats = json.loads((tmp_path / "stats.json").read_text())

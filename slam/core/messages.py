@@ -128,7 +128,7 @@ class TrackingResult:
     num_inliers: int  # PnP inliers (0 when not tracked)
     feature_pixels: np.ndarray  # (N, 2) distorted pixels in the left image
     feature_ages: np.ndarray  # (N,) frames each feature has been tracked
-    latency_ms: float  # front-end processing time of this frame
+    latency_ms: float  # front end, frame in to pose out (the keyframe work after it not included)
     image_left: np.ndarray | None = None  # for the viewer only (None when not logged)
     reason: str = ""  # why tracking was lost / what happened, for the log
     cpu_ms: float = 0.0  # front-end thread CPU time of this frame (latency_ms minus waiting)

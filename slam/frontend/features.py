@@ -136,7 +136,7 @@ def track_klt(
         p1,
         p0.copy(),
         winSize=win,
-        maxLevel=max_level,
+        maxLevel=min(max_level, cfg.klt_backward_levels),
         criteria=criteria,
         flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
     )

@@ -59,6 +59,9 @@ class FrontendStats:
     track_refits_kept: int = 0
     """...and kept (the others were weak, moved too far or degenerated)."""
     state_log: list[tuple[int, str]] = field(default_factory=list)
+    after_pose_ms: list[float] = field(default_factory=list)
+    """Wall time of each frame's work after its pose was published (:meth:`FrontEnd.after_pose`:
+    keyframe creation, new landmarks' templates), ms."""
 
 
 class FrontEnd:
@@ -114,7 +117,9 @@ class FrontEnd:
         self.bias_gyro = np.zeros(3)
         self.latest_estimate: Estimate | None = None
         self._prior_cache: tuple[Estimate, int, np.ndarray, np.ndarray] | None = None
-        self._cpu_start_s = 0.0  # thread CPU time and run-queue wait when process() started
+        self._keyframe_due: tuple[StereoFrame, np.ndarray] | None = None
+        self._keyframe_made: Keyframe | None = None
+        self._cpu_start_s = 0.0  # thread CPU time and run-queue wait when track() started
         self._runqueue_start_ns: int | None = None
         self.gravity_m_s2 = calib.imu.gravity_m_s2 if calib.imu else 9.81
 
@@ -252,7 +257,15 @@ class FrontEnd:
 
     # ------------------------------------------------------------------ main entry
     def process(self, frame: StereoFrame) -> tuple[TrackingResult, Keyframe | None]:
-        """Track one frame. Returns the tracking result and a keyframe when one was made."""
+        """Track one frame. Returns the tracking result and a keyframe when one was made
+        (:meth:`track` then :meth:`after_pose`)."""
+        result = self.track(frame)
+        return result, self.after_pose()
+
+    def track(self, frame: StereoFrame) -> TrackingResult:
+        """Track one frame up to its pose: the result to publish at once. A keyframe this
+        frame needs is made by :meth:`after_pose`, which the caller runs after publishing
+        (the result already carries the keyframe's id)."""
         t_start = time.perf_counter()
         self._cpu_start_s = thread_cpu_s()
         self._runqueue_start_ns = runqueue_wait_ns()
@@ -264,15 +277,30 @@ class FrontEnd:
         if mean < self.cfg.black_frame_max_mean or std < self.cfg.textureless_max_std:
             self.pyr_prev = None
             what = "black frame" if mean < self.cfg.black_frame_max_mean else "textureless frame"
-            return self._lose(frame, t_start, what), None
+            return self._lose(frame, t_start, what)
         pyr = build_pyramid(image, self.cfg)
         if not self.mapped or self.pyr_prev is None:
-            result, kf = self._start_segment(frame, pyr, t_start)
+            result, self._keyframe_made = self._start_segment(frame, pyr, t_start)
         else:
-            result, kf = self._track(frame, pyr, t_start)
+            result = self._track(frame, pyr, t_start)
         self.pyr_prev = pyr
         self.t_prev_ns = frame.t_ns
-        return result, kf
+        return result
+
+    def after_pose(self) -> Keyframe | None:
+        """The frame's work that its pose does not wait for: the keyframe :meth:`track`
+        decided on (detection, stereo matching, new landmarks) and the new landmarks'
+        affine templates. A robot gets the pose that much sooner (ORB-SLAM's tracking
+        likewise hands keyframe insertion on); the next frame still waits for it."""
+        t0 = time.perf_counter()
+        kf, self._keyframe_made = self._keyframe_made, None
+        if self._keyframe_due is not None:
+            frame, pyr = self._keyframe_due
+            self._keyframe_due = None
+            kf = self._make_keyframe(frame, pyr)
+        self.templates.build_pending()
+        self.stats.after_pose_ms.append((time.perf_counter() - t0) * 1e3)
+        return kf
 
     def _imu_prior(self, t_ns: int) -> np.ndarray | None:
         """world_from_body at t_ns dead-reckoned with the IMU from the latest back-end estimate."""
@@ -323,9 +351,7 @@ class FrontEnd:
             pose[:3, :3] = self.world_from_body[:3, :3] @ rot_b0_b1
         return pose
 
-    def _track(
-        self, frame: StereoFrame, pyr: np.ndarray, t_start: float
-    ) -> tuple[TrackingResult, Keyframe | None]:
+    def _track(self, frame: StereoFrame, pyr: np.ndarray, t_start: float) -> TrackingResult:
         assert self.pyr_prev is not None and self.world_from_body is not None
         rot_b0_b1 = self._gyro_rotation(self.t_prev_ns, frame.t_ns)
         guess = None
@@ -350,7 +376,7 @@ class FrontEnd:
         pose_guess = self._predict_pose(frame.t_ns, rot_b0_b1)
         has_lm = np.array([i in self.landmarks for i in self.ids.tolist()], dtype=bool)
         if has_lm.sum() < self.cfg.min_pnp_inliers:
-            return self._lose(frame, t_start, f"only {int(has_lm.sum())} landmarks tracked"), None
+            return self._lose(frame, t_start, f"only {int(has_lm.sum())} landmarks tracked")
         idx = np.flatnonzero(has_lm)
         obj = np.array([self.landmarks[i] for i in self.ids[idx].tolist()])
         img = self._undistorted_px(self.px[idx])
@@ -372,7 +398,7 @@ class FrontEnd:
         )
         n_in = 0 if inliers is None else len(inliers)
         if not ok_pnp or n_in < self.cfg.min_pnp_inliers:
-            return self._lose(frame, t_start, f"PnP found {n_in} inliers"), None
+            return self._lose(frame, t_start, f"PnP found {n_in} inliers")
         inl = inliers.ravel()
         rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], self.K, None, rvec, tvec)
         rot, _ = cv2.Rodrigues(rvec)
@@ -392,21 +418,18 @@ class FrontEnd:
         tracked = set(self.ids.tolist())
         for lid in [lid for lid in self.landmarks if lid not in tracked]:
             del self.landmarks[lid]
-        kf = None
-        if self._need_keyframe(frame.t_ns, n_in):
-            kf = self._make_keyframe(frame, pyr)
-        return (
-            self._result(
-                frame,
-                "tracking",
-                t_start,
-                world_from_body=pose,
-                is_keyframe=kf is not None,
-                keyframe_id=kf.keyframe_id if kf else -1,
-                num_tracked=num_tracked,
-                num_inliers=n_in,
-            ),
-            kf,
+        keyframe = self._need_keyframe(frame.t_ns, n_in)
+        if keyframe:
+            self._keyframe_due = (frame, pyr)  # made by after_pose, with the next id
+        return self._result(
+            frame,
+            "tracking",
+            t_start,
+            world_from_body=pose,
+            is_keyframe=keyframe,
+            keyframe_id=self.next_keyframe_id if keyframe else -1,
+            num_tracked=num_tracked,
+            num_inliers=n_in,
         )
 
     def _need_keyframe(self, t_ns: int, num_inliers: int) -> bool:

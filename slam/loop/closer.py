@@ -663,10 +663,12 @@ class LoopCloser:
         self.map_generation += 1
         self.store.set_corrected(self.corrected_poses())
 
-    def global_adjustment(self) -> GlobalBaResult | None:
+    def global_adjustment(self, spent_s: float = 0.0) -> GlobalBaResult | None:
         """Global bundle adjustment (:mod:`slam.loop.global_ba`) of the component holding the
         newest active loop, starting from the pose graph's result; its keyframe poses replace
-        the corrected ones. None (nothing changed) without an active loop or when disabled."""
+        the corrected ones. None (nothing changed) without an active loop or when disabled.
+        ``spent_s``: time the end of the run has already used (the loop backlog), taken off
+        the time budget."""
         active = [r for r in self.loops if r.active]
         if not self.cfg.global_ba or not active:
             return None
@@ -689,18 +691,21 @@ class LoopCloser:
         ]
         c = self.cfg
         t0 = time.perf_counter()
-        fusion_pairs = 0
-        if c.global_ba_fusion:
-            found = self._fusion_pairs(nodes)
-            fusion_pairs = len({(qk, mk) for qk, _, mk, _ in found})
-            pairs += found
-        fusion_s = time.perf_counter() - t0
         budget_s = None
         if c.global_ba_budget_fraction > 0:
             span_s = (
                 max(self.t_ns_of[k] for k in nodes) - min(self.t_ns_of[k] for k in nodes)
             ) * 1e-9
-            budget_s = max(c.global_ba_budget_fraction * span_s - fusion_s, 0.0)
+            budget_s = max(c.global_ba_budget_fraction * span_s - spent_s, 0.0)
+        fusion_pairs = searched = 0
+        if c.global_ba_fusion:
+            share = None if budget_s is None else c.global_ba_fusion_budget_share * budget_s
+            found, searched = self._fusion_pairs(nodes, None if share is None else t0 + share)
+            fusion_pairs = len({(qk, mk) for qk, _, mk, _ in found})
+            pairs += found
+        fusion_s = time.perf_counter() - t0
+        if budget_s is not None:
+            budget_s = max(budget_s - fusion_s, 0.0)
         result = global_bundle_adjustment(
             self.calib,
             self.observations,
@@ -713,35 +718,50 @@ class LoopCloser:
                 pixel_sigma_px=c.global_ba_pixel_sigma_px,
                 odometry_sigma_scale=c.global_ba_odometry_sigma_scale,
                 time_budget_s=budget_s,
+                max_keyframes_per_landmark=c.global_ba_max_keyframes_per_landmark,
             ),
         )
         if result is None:
             return None
         result = dataclasses.replace(
-            result, fusion_keyframe_pairs=fusion_pairs, fusion_seconds=fusion_s
+            result,
+            fusion_keyframe_pairs=fusion_pairs,
+            fusion_keyframes_searched=searched,
+            fusion_seconds=fusion_s,
         )
         self._set_optimised(result.world_from_body)
         self.global_ba = result
         return result
 
-    def _fusion_pairs(self, nodes: list[int]) -> list[tuple[int, int, int, int]]:
+    def _fusion_pairs(
+        self, nodes: list[int], deadline: float | None = None
+    ) -> tuple[list[tuple[int, int, int, int]], int]:
         """Landmark pairs (keyframe, landmark, keyframe, landmark) between each keyframe and
         up to ``global_ba_fusion_candidates`` older keyframes of other passes near its
         corrected pose (one per pass), matched landmark to landmark like a loop and kept only
         when the match's relative pose agrees with the corrected poses (ORB-SLAM's loop
         fusion: the revisit then shares landmarks with the first pass everywhere, not only at
-        the few keyframes where a loop was accepted)."""
+        the few keyframes where a loop was accepted).
+
+        With a ``deadline`` (``time.perf_counter``) the search stops there, having visited
+        the keyframes in an order that spreads over the run (every 8th first, then the ones
+        between), so a cut search still fuses every part of the map."""
         c = self.cfg
         ids = [k for k in sorted(nodes) if self.store.has(k)]
         if len(ids) < 2:
-            return []
+            return [], 0
         world_from_cam = np.array([self.corrected_pose(k) @ self.body_from_cam0 for k in ids])
         pos = world_from_cam[:, :3, 3]
         view = world_from_cam[:, :3, 2]
         t_s = np.array([self.t_ns_of[k] for k in ids], dtype=float) * 1e-9
         cos_max = np.cos(np.radians(c.global_ba_fusion_angle_deg))
         out: list[tuple[int, int, int, int]] = []
-        for i, q in enumerate(ids):
+        searched = 0
+        for i in sorted(range(len(ids)), key=lambda i: (i % 8, i)):
+            if deadline is not None and time.perf_counter() > deadline:
+                break
+            searched += 1
+            q = ids[i]
             older = np.flatnonzero(t_s < t_s[i] - c.global_ba_fusion_min_gap_s)
             if not len(older):
                 continue
@@ -777,7 +797,7 @@ class LoopCloser:
                 qa = qd.landmark_ids[ver.query_indices].tolist()
                 mb = md.landmark_ids[ver.candidate_indices].tolist()
                 out += [(q, int(a), m, int(b)) for a, b in zip(qa, mb, strict=True)]
-        return out
+        return out, searched
 
     def apply_pgo(self, outcome: PgoOutcome) -> LoopCorrection:
         """Take an optimisation's result: new keyframe poses, per-segment ``map_from_odom``

@@ -96,6 +96,13 @@ class LoopClosureConfig:
     time its keyframes span; past it the adjustment keeps the estimate so far (stats.json
     ``loop_closure.global_ba.time_boxed``). 0: no limit. Accuracy and time with and without:
     BENCHMARKS.md."""
+    global_ba_fusion_budget_share: float = bounded(0.5, gt=0, le=1)
+    """Share of that budget the fusion search may use; past it, it stops (having visited the
+    keyframes spread over the run)."""
+    global_ba_max_keyframes_per_landmark: int = bounded(10, ge=0)
+    """Observations kept per landmark in the global adjustment, spread over the keyframes
+    that saw it (0: all). 10 made an iteration 3-4x cheaper, so the time-boxed adjustment
+    converges where it did one iteration before (BENCHMARKS.md, "End of run")."""
     global_ba_pixel_sigma_px: float = bounded(1.0, gt=0)
     """Reprojection sigma of the global adjustment, pixels."""
     global_ba_odometry_sigma_scale: float = bounded(0.3, ge=0)

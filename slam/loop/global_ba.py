@@ -92,6 +92,12 @@ class GlobalBaParams:
     (measured on room-figure8: keyframe 1 -> 2 off by 28 mm) and a reset back end leaves a
     jump: with a quadratic cost such an edge dragged its keyframes 5-7 mm away from what their
     observations said."""
+    max_keyframes_per_landmark: int = 0
+    """Keep at most about this many of each (fused) landmark's keyframe observations, evenly
+    spread over the keyframes that saw it, its first and last always (0: all); a keyframe
+    left with fewer than twice ``min_observations`` keeps all of its own. A landmark tracked
+    through 40 keyframes a few centimetres apart adds 40 nearly identical constraints; the
+    iteration's cost grows with every one."""
     anchor: str = "weak"
     """Gauge: "weak" priors on every keyframe's initial pose (no single keyframe trusted: the
     first ones may predate the back end's initialisation), or "fixed" (``fixed_id`` held)."""
@@ -115,6 +121,8 @@ class GlobalBaResult:
     """Keyframe pairs of different passes matched to find more landmarks to fuse (the
     caller's fusion search; 0 without one)."""
     fusion_seconds: float = 0.0
+    fusion_keyframes_searched: int = 0
+    """Keyframes the fusion search visited before its share of the time budget ran out."""
     time_boxed: bool = False
     """The time budget stopped the iterations before convergence."""
 
@@ -131,6 +139,7 @@ class GlobalBaResult:
             "seconds": round(self.seconds, 3),
             "fusion_keyframe_pairs": self.fusion_keyframe_pairs,
             "fusion_seconds": round(self.fusion_seconds, 3),
+            "fusion_keyframes_searched": self.fusion_keyframes_searched,
             "time_boxed": self.time_boxed,
         }
 
@@ -165,6 +174,22 @@ def _project(
     with np.errstate(divide="ignore", invalid="ignore"):
         uv = p[:, :2] / z[:, None] * [k[0, 0], k[1, 1]] + [k[0, 2], k[1, 2]]
     return uv, z
+
+
+def _spread_rows(group: np.ndarray, t: np.ndarray, at_most: int) -> np.ndarray:
+    """Row indices that keep about ``at_most`` rows of each ``group`` (its first and last in
+    ``t`` order, the others evenly spread between), in their original order."""
+    order = np.lexsort((t, group))
+    g = group[order]
+    start = np.r_[0, np.flatnonzero(g[1:] != g[:-1]) + 1]
+    size = np.diff(np.r_[start, len(g)])
+    rank = np.arange(len(g)) - np.repeat(start, size)
+    count = np.repeat(size, size)
+    step = np.maximum(count - 1, 1) / max(at_most - 1, 1)
+    slot = np.floor(rank / step)
+    prev_slot = np.floor((rank - 1) / step)
+    keep = (count <= at_most) | (rank == 0) | (rank == count - 1) | (slot != prev_slot)
+    return np.sort(order[keep])
 
 
 def global_bundle_adjustment(
@@ -234,6 +259,15 @@ def global_bundle_adjustment(
         right[keep],
         pts_cam[keep],
     )
+    if p.max_keyframes_per_landmark > 0:
+        thin = np.zeros(len(lid), bool)
+        thin[_spread_rows(lid, t_row[keep], p.max_keyframes_per_landmark)] = True
+        # A keyframe the thinning would leave short of observations keeps all of its own.
+        kfs, counts = np.unique(kf_of[thin], return_counts=True)
+        enough = set(kfs[counts >= 2 * p.min_observations].tolist())
+        thin |= ~np.isin(kf_of, list(enough))
+        kf_of, lid = kf_of[thin], lid[thin]
+        left, right, pts_cam = left[thin], right[thin], pts_cam[thin]
     # Landmarks in enough keyframes, each with an initial guess from its first usable keyframe.
     uniq, inverse, counts = np.unique(lid, return_inverse=True, return_counts=True)
     depth = pts_cam[:, 2]

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from typing import Any
 
+import cv2
+
 from slam.core.messages import StereoFrame
 from slam.frontend.tracker import FrontEnd
 from slam.runtime.stage import Stage
@@ -18,13 +20,16 @@ class FrontendStage(Stage):
     def __init__(self, frontend: FrontEnd, threaded: bool, queue_size: int):
         super().__init__("frontend", maxsize=queue_size, threaded=threaded)
         self.frontend = frontend
+        threads = frontend.cfg.opencv_threads
+        cv2.setNumThreads(threads if threads > 0 else -1)  # this process's OpenCV; -1: default
 
     def process(self, msg: Any) -> None:
         assert isinstance(msg, StereoFrame)
-        result, keyframe = self.frontend.process(msg)
+        result = self.frontend.track(msg)
         for correction in self.frontend.take_corrections():
             self.emit(correction)
-        self.emit(result)
+        self.emit(result)  # the pose goes out before the keyframe work (FrontEnd.after_pose)
+        keyframe = self.frontend.after_pose()
         if keyframe is not None:
             self.emit(keyframe)
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import threading
+import time
 from typing import Any
 
 import numpy as np
@@ -92,9 +93,11 @@ class LoopCore(WorkerCore):
         ]
 
     def finish(self, interrupted: bool) -> LoopFinal:
-        """The global adjustment (skipped when the run was interrupted), then the state."""
+        """The global adjustment (skipped when the run was interrupted; its time budget less
+        what the end of the run has already taken), then the state."""
         closer = self.closer
-        ba = None if interrupted else closer.global_adjustment()
+        spent_s = 0.0 if self.end_began_s is None else time.perf_counter() - self.end_began_s
+        ba = None if interrupted else closer.global_adjustment(spent_s)
         summary = dict(closer.stats.summary())
         summary["global_ba"] = None if ba is None else ba.summary()
         summary["global_ba_skipped"] = "run interrupted" if interrupted else None
@@ -167,7 +170,11 @@ class LoopClosureStage(ProcessStage):
         threaded: bool,
         idle_worker: bool = False,
     ):
-        """``idle_worker``: run the worker process under SCHED_IDLE (``slam.runtime.priority``)."""
+        """``idle_worker``: run the worker process under SCHED_IDLE (``slam.runtime.priority``).
+        A sequential run (not ``threaded``) is deterministic, so its global adjustment gets no
+        wall-clock budget."""
+        if not threaded:
+            cfg = dataclasses.replace(cfg, global_ba_budget_fraction=0.0)
         super().__init__(
             "loop",
             256,

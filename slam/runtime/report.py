@@ -133,6 +133,7 @@ class Run:
             "sequential": cfg.player.sequential,
             "latency": {
                 "frontend_frame": latency_summary(p.recorder.frontend_latencies_ms()),
+                "frontend_after_pose": latency_summary(fe.after_pose_ms),
                 **p.recorder.frontend_breakdown(),
                 **{f"stage_{s.name}": s.latency_stats() for s in p.stages},
             },

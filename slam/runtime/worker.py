@@ -34,6 +34,11 @@ class WorkerDied(RuntimeError):
 class WorkerCore(ABC):
     """The part of a stage that may run in a worker process: messages in, outputs out."""
 
+    end_began_s: float | None = None
+    """``time.perf_counter()`` when the run's end began in the worker process (set before
+    the backlog is drained), so :meth:`finish` can count the backlog against a time budget.
+    None inline."""
+
     @abstractmethod
     def handle(self, msg: Any) -> list[Any]:
         """Outputs for one input message (sent back to the stage in order)."""
@@ -134,6 +139,7 @@ def _worker_main(
     live = threading.Thread(target=serve, name="live")
     live.start()
     live.join()
+    core.end_began_s = time.perf_counter()
     if handed_over:
         step(handed_over[0])
     while not ended and not failed:  # the end of the run: the backlog, at full priority
@@ -176,9 +182,20 @@ class WorkerProcess:
             daemon=True,
             name=f"slam-{name}",
         )
-        self.proc.start()
+        self.proc.start()  # it imports and builds its core while the caller goes on
+        self.pid: int | None = None
+        self._start_timeout_s = start_timeout_s
+        self._on_item = on_item
+        self._on_died = on_died
+
+    def wait_ready(self) -> None:
+        """Wait for the worker's :class:`WorkerReady` (once; workers started one after the
+        other start up side by side) and start receiving its outputs."""
+        if self.pid is not None:
+            return
+        name = self.name
         first: Any = None
-        deadline = time.monotonic() + start_timeout_s
+        deadline = time.monotonic() + self._start_timeout_s
         while first is None and time.monotonic() < deadline:
             try:
                 first = self.outbox.get(timeout=0.5)
@@ -190,8 +207,6 @@ class WorkerProcess:
             detail = f": {first.error}" if isinstance(first, WorkerFailed) else ""
             raise RuntimeError(f"the {name} worker process did not start{detail}")
         self.pid = first.pid
-        self._on_item = on_item
-        self._on_died = on_died
         self.receiver = threading.Thread(target=self._receive, name=f"{name}-rx", daemon=True)
         self.receiver.start()
 
@@ -208,6 +223,7 @@ class WorkerProcess:
                 return
 
     def put(self, msg: Any) -> None:
+        self.wait_ready()  # a stage used before it was started
         self.inbox.put(msg)
 
     def begin_end(self) -> None:
@@ -220,6 +236,9 @@ class WorkerProcess:
     def stop(self, interrupted: bool, timeout_s: float, abandon: threading.Event | None) -> bool:
         """End of input: wait up to ``timeout_s`` (or until ``abandon`` is set) for the worker's
         last output, then end the process. False when it had to be terminated."""
+        if self.pid is None:  # never waited for: nothing of it was used
+            self.terminate()
+            return False
         if interrupted:
             self.hurry.set()
         self.begin_end()
@@ -279,9 +298,14 @@ class ProcessStage(Stage):
             self._proc = WorkerProcess(
                 name, make_core, args, self._on_item, self._on_died, role, idle
             )
-            self.worker_pid = self._proc.pid
         else:
             self._core = make_core(*args)
+
+    def start(self) -> None:
+        if self._proc is not None:
+            self._proc.wait_ready()
+            self.worker_pid = self._proc.pid
+        super().start()
 
     # -- to implement ------------------------------------------------------------------------
     def on_output(self, item: Any) -> None:
