@@ -114,7 +114,11 @@ class TrackingResult:
     "relocalised" (found again in the existing map after a loss: the segment continues),
     "recovered" (tracking restarted at the IMU dead-reckoned pose: the segment continues).
     ``world_from_body`` is None when the frame could not be tracked: the trajectory marks the
-    gap instead of inventing a pose.
+    gap instead of inventing a pose. It is the odometry (smooth, never jumps);
+    ``map_from_body`` the same pose in the loop-corrected map as known when the result was
+    published (the latest :class:`LoopCorrection`'s ``map_from_odom`` of its segment applied;
+    equal to the odometry before any loop). ``map_jump_m`` / ``map_jump_deg``: on the first
+    result after a new correction, how far that correction moved this frame's map pose.
     """
 
     t_ns: int
@@ -134,6 +138,10 @@ class TrackingResult:
     cpu_ms: float = 0.0  # front-end thread CPU time of this frame (latency_ms minus waiting)
     runqueue_ms: float = -1.0  # of the waiting, runnable without a CPU (-1: OS does not say)
     in_backend_world: bool = False  # False: the VO frame, before the back end's initialisation
+    map_from_body: np.ndarray | None = None  # (4, 4), None when not tracked
+    map_generation: int = 0  # of the correction applied (0: none yet)
+    map_jump_m: float = 0.0
+    map_jump_deg: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -3,11 +3,15 @@ end's corrections out."""
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Callable
 from typing import Any
 
 import cv2
+import numpy as np
 
-from slam.core.messages import StereoFrame
+from slam.core.geometry import rotation_angle_rad
+from slam.core.messages import LoopCorrection, StereoFrame, TrackingResult
 from slam.frontend.tracker import FrontEnd
 from slam.runtime.stage import Stage
 
@@ -17,21 +21,68 @@ class FrontendStage(Stage):
     :class:`FrontendCorrection`\\ s it applied, the :class:`TrackingResult`, the
     :class:`Keyframe` if it made one."""
 
-    def __init__(self, frontend: FrontEnd, threaded: bool, queue_size: int):
+    def __init__(
+        self,
+        frontend: FrontEnd,
+        threaded: bool,
+        queue_size: int,
+        map_source: Callable[[], LoopCorrection | None] | None = None,
+    ):
+        """``map_source``: the latest loop correction (read without waiting), which puts
+        every published pose into the loop-corrected map as well."""
         super().__init__("frontend", maxsize=queue_size, threaded=threaded)
         self.frontend = frontend
+        self.map_source = map_source
+        self._map_generation = 0
+        self._map_from_odom: dict[int, np.ndarray] = {}
         threads = frontend.cfg.opencv_threads
         cv2.setNumThreads(threads if threads > 0 else -1)  # this process's OpenCV; -1: default
 
     def process(self, msg: Any) -> None:
         assert isinstance(msg, StereoFrame)
-        result = self.frontend.track(msg)
+        result = self._in_map(self.frontend.track(msg))
         for correction in self.frontend.take_corrections():
             self.emit(correction)
         self.emit(result)  # the pose goes out before the keyframe work (FrontEnd.after_pose)
         keyframe = self.frontend.after_pose()
         if keyframe is not None:
             self.emit(keyframe)
+
+    def _in_map(self, result: TrackingResult) -> TrackingResult:
+        """The result with its pose in the loop-corrected map as known now: odometry composed
+        with the latest correction of its segment (VINS-Fusion publishes the same; the
+        odometry itself is never moved). A new correction's jump is measured on this frame."""
+        corr = None if self.map_source is None else self.map_source()
+        if corr is not None and corr.map_generation != self._map_generation:
+            old, self._map_from_odom = self._map_from_odom, dict(corr.map_from_odom)
+            self._map_generation = corr.map_generation
+            jump = self._map_jump(result, old)
+        else:
+            jump = (0.0, 0.0)
+        pose = result.world_from_body
+        if pose is None:
+            return dataclasses.replace(result, map_generation=self._map_generation)
+        m = self._map_from_odom.get(result.segment_id)
+        return dataclasses.replace(
+            result,
+            map_from_body=pose.copy() if m is None else m @ pose,
+            map_generation=self._map_generation,
+            map_jump_m=jump[0],
+            map_jump_deg=jump[1],
+        )
+
+    def _map_jump(self, result: TrackingResult, old: dict[int, np.ndarray]) -> tuple[float, float]:
+        pose = result.world_from_body
+        if pose is None:
+            return 0.0, 0.0
+        eye = np.eye(4)
+        before = old.get(result.segment_id, eye) @ pose
+        after = self._map_from_odom.get(result.segment_id, eye) @ pose
+        delta = np.linalg.inv(before) @ after
+        return (
+            float(np.linalg.norm(after[:3, 3] - before[:3, 3])),
+            float(np.degrees(rotation_angle_rad(delta[:3, :3]))),
+        )
 
     def finish_frontend(self) -> None:
         """After the back end has ended: a change of frame it published after the last frame

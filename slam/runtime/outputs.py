@@ -1,7 +1,9 @@
 """Run outputs, always written atomically (temp file in the same folder, then rename).
 
 - ``trajectory.tum``: ``t[s] x y z qx qy qz qw`` world_from_body (body = IMU frame); TUM files
-  store the quaternion x,y,z,w and time in seconds.
+  store the quaternion x,y,z,w and time in seconds. The live pose as published, in the
+  loop-corrected map; ``trajectory_odometry.tum`` the odometry, ``trajectory_loop_closed.tum``
+  the final estimate (extra trajectories).
 - ``trajectory.csv``: EuRoC ground-truth layout (ns, position, q w,x,y,z).
 - ``keyframes.tum``, ``stats.json``, ``config.yaml``.
 

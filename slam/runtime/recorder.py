@@ -24,7 +24,9 @@ class Recorder:
     def __init__(self, start_ns: int) -> None:
         self._lock = threading.Lock()
         self.start_ns = start_ns
-        self.poses: list[tuple[int, np.ndarray]] = []
+        self.poses: list[tuple[int, np.ndarray]] = []  # odometry
+        self.map_poses: list[tuple[int, np.ndarray]] = []  # live, loop-corrected, as published
+        self.map_jumps: list[dict[str, float]] = []
         self.pose_segments: list[int] = []
         self.keyframes: list[tuple[int, np.ndarray]] = []
         self.frontend_latency_ms: list[float] = []
@@ -67,6 +69,24 @@ class Recorder:
             self.last_state = res.state
             if res.world_from_body is not None:
                 self.poses.append((res.t_ns, res.world_from_body))
+                live = res.map_from_body if res.map_from_body is not None else res.world_from_body
+                self.map_poses.append((res.t_ns, live))
+                if res.map_jump_m > 0 or res.map_jump_deg > 0:
+                    self.map_jumps.append(
+                        {
+                            "t_ns": res.t_ns,
+                            "map_generation": res.map_generation,
+                            "metres": res.map_jump_m,
+                            "degrees": res.map_jump_deg,
+                        }
+                    )
+                    self.events.append(
+                        (
+                            res.t_ns,
+                            f"live pose corrected by loop closure: {res.map_jump_m * 100:.1f} cm, "
+                            f"{res.map_jump_deg:.2f} deg",
+                        )
+                    )
                 self.pose_segments.append(res.segment_id)
                 if res.is_keyframe:
                     self.keyframes.append((res.t_ns, res.world_from_body))
@@ -77,6 +97,7 @@ class Recorder:
         gravity-aligned world, at its initialisation)."""
         with self._lock:
             self.poses = [(t, new_from_old @ p) for t, p in self.poses]
+            self.map_poses = [(t, new_from_old @ p) for t, p in self.map_poses]
             self.keyframes = [(t, new_from_old @ p) for t, p in self.keyframes]
 
     def event(self, t_ns: int, text: str) -> None:
@@ -120,3 +141,20 @@ class Recorder:
         with self._lock:
             poses, kfs = list(self.poses), list(self.keyframes)
         return trajectory_from_poses(poses), trajectory_from_poses(kfs)
+
+    def live(self) -> Trajectory:
+        """Every frame's live pose in the loop-corrected map, as published so far."""
+        with self._lock:
+            poses = list(self.map_poses)
+        return trajectory_from_poses(poses)
+
+    def map_jump_summary(self) -> dict[str, Any]:
+        """The loop corrections' jumps of the live pose (stats.json ``live_map_corrections``)."""
+        with self._lock:
+            jumps = list(self.map_jumps)
+        return {
+            "count": len(jumps),
+            "max_m": max((j["metres"] for j in jumps), default=0.0),
+            "max_deg": max((j["degrees"] for j in jumps), default=0.0),
+            "jumps": jumps,
+        }

@@ -53,7 +53,7 @@ class RunResult:
     """What a run produced."""
 
     out_dir: Path | None
-    trajectory: Trajectory
+    trajectory: Trajectory  # the odometry (trajectory_odometry.tum)
     keyframes: Trajectory
     stats: dict[str, Any]
     interrupted: bool = False
@@ -62,6 +62,7 @@ class RunResult:
     loop_closed: Trajectory | None = None
     exit_code: int = 0  # 128 + the signal that stopped the run, else 0
     session: ViewerSession | None = None  # the viewer, for serving the final map after the run
+    live: Trajectory | None = None  # the live pose in the loop-corrected map (trajectory.tum)
 
 
 def _smoothed(p: Pipeline) -> Callable[[int], bool]:
@@ -141,6 +142,7 @@ class Run:
             "memory": mem,
             "loop_closure": None if p.loop is None else p.loop.stats(),
             "mapping": None if p.mapper is None else p.mapper.stats(),
+            "live_map_corrections": p.recorder.map_jump_summary(),
             "relocalisations": fe.relocalisations,
             "imu_bridged_losses": fe.imu_bridged,
             "track_refits": {"attempted": fe.track_refits, "kept": fe.track_refits_kept},
@@ -169,11 +171,16 @@ class Run:
         closed: Trajectory | None,
         stats: dict[str, Any],
     ) -> None:
-        """Write every output (atomically, file by file); nothing without an output folder."""
+        """Write every output (atomically, file by file); nothing without an output folder.
+        ``trajectory.tum`` is the live pose as published (loop-corrected as known then),
+        ``trajectory_odometry.tum`` the odometry ``traj``."""
         if self.out_dir is None:
             return
-        extra = {} if closed is None else {"trajectory_loop_closed": closed}
-        write_run_outputs(self.out_dir, traj, kfs, stats, config_to_yaml(self.cfg), extra)
+        extra = {"trajectory_odometry": traj}
+        if closed is not None:
+            extra["trajectory_loop_closed"] = closed
+        live = self.p.recorder.live()
+        write_run_outputs(self.out_dir, live, kfs, stats, config_to_yaml(self.cfg), extra)
 
     def flush(self) -> None:
         """The outputs for what has been processed so far (every few seconds of a run)."""
@@ -227,4 +234,5 @@ class Run:
             list(self.seq.warnings),
             closed,
             control.exit_code,
+            live=p.recorder.live(),
         )

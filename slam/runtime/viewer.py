@@ -397,7 +397,17 @@ class RerunStage(Stage):
         self.rec.log("plots/features/inliers", rr.Scalars(float(res.num_inliers)))
         if res.world_from_body is None:
             return
-        pose = res.world_from_body
+        # the live pose in the loop-corrected map (the odometry until a loop is closed)
+        pose = res.map_from_body if res.map_from_body is not None else res.world_from_body
+        if res.map_jump_m > 0 or res.map_jump_deg > 0:
+            self.rec.log(
+                "log",
+                rr.TextLog(
+                    f"live pose corrected: {res.map_jump_m * 100:.1f} cm, "
+                    f"{res.map_jump_deg:.2f} deg"
+                ),
+            )
+            self.rec.log("plots/live_correction_cm", rr.Scalars(res.map_jump_m * 100))
         self.rec.log("world/body", rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
         self.positions.append(pose[:3, 3].copy())
         if self.n_results % 5 == 0 or res.is_keyframe:

@@ -95,8 +95,11 @@ def build(seq: Sequence, cfg: SlamConfig, session: ViewerSession | None) -> Pipe
         latest_estimate.get,
         relocaliser=None if loop is None else loop.relocaliser,
     )
+    map_source = None if loop is None else loop.latest.get
     p = Pipeline(
-        FrontendStage(frontend, threaded, cfg.player.frame_queue_size), recorder, imu_buffer
+        FrontendStage(frontend, threaded, cfg.player.frame_queue_size, map_source),
+        recorder,
+        imu_buffer,
     )
     p.loop, p.viewer = loop, viewer
     if with_imu:
