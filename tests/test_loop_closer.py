@@ -291,3 +291,23 @@ def test_fusion_search_stops_at_its_deadline(loop_scene, closed) -> None:
     assert (pairs, searched) == ([], 0)
     full, searched = closer._fusion_pairs(ids, deadline=time.perf_counter() + 600.0)
     assert searched == len(ids) and len(full) > 0
+
+
+def test_backlog_that_used_the_budget_skips_the_adjustment() -> None:
+    """The end of a run behind on a busy machine: when draining the loop backlog already took
+    the global adjustment's whole budget, the adjustment is skipped and the summary says why;
+    within the budget it is not skipped for that reason."""
+    import time
+
+    from datasets.rigs import euroc_like_calibration
+    from slam.runtime.loop import LoopCore
+
+    core = LoopCore(euroc_like_calibration(), LoopClosureConfig(global_ba_budget_fraction=0.1))
+    core.closer.t_ns_of.update({0: 0, 1: 20_000_000_000})  # keyframes 20 s apart: 2 s budget
+    assert core.closer.global_adjustment_budget_s() == pytest.approx(2.0)
+    core.end_began_s = time.perf_counter() - 3.0
+    final = core.finish(interrupted=False)
+    assert final.stats["global_ba_skipped"].startswith("the loop backlog used its time budget")
+    assert final.stats["global_ba"] is None
+    core.end_began_s = time.perf_counter()
+    assert core.finish(interrupted=False).stats["global_ba_skipped"] is None

@@ -663,6 +663,14 @@ class LoopCloser:
         self.map_generation += 1
         self.store.set_corrected(self.corrected_poses())
 
+    def global_adjustment_budget_s(self) -> float | None:
+        """The global adjustment's whole time budget (s; None: no limit)."""
+        c = self.cfg
+        if c.global_ba_budget_fraction <= 0 or not self.t_ns_of:
+            return None
+        span_s = (max(self.t_ns_of.values()) - min(self.t_ns_of.values())) * 1e-9
+        return c.global_ba_budget_fraction * span_s
+
     def global_adjustment(self, spent_s: float = 0.0) -> GlobalBaResult | None:
         """Global bundle adjustment (:mod:`slam.loop.global_ba`) of the component holding the
         newest active loop, starting from the pose graph's result; its keyframe poses replace

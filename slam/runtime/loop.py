@@ -97,10 +97,18 @@ class LoopCore(WorkerCore):
         what the end of the run has already taken), then the state."""
         closer = self.closer
         spent_s = 0.0 if self.end_began_s is None else time.perf_counter() - self.end_began_s
-        ba = None if interrupted else closer.global_adjustment(spent_s)
+        budget_s = closer.global_adjustment_budget_s()
+        skipped = None
+        if interrupted:
+            skipped = "run interrupted"
+        elif budget_s is not None and spent_s >= budget_s:
+            # The backlog (a worker behind on a busy machine) used the whole budget: one more
+            # iteration would take seconds there. The pose graph's result stays.
+            skipped = f"the loop backlog used its time budget ({spent_s:.1f} of {budget_s:.1f} s)"
+        ba = None if skipped else closer.global_adjustment(spent_s)
         summary = dict(closer.stats.summary())
         summary["global_ba"] = None if ba is None else ba.summary()
-        summary["global_ba_skipped"] = "run interrupted" if interrupted else None
+        summary["global_ba_skipped"] = skipped
         summary["loops"] = [
             {
                 "loop_id": r.loop_id,
