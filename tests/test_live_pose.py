@@ -72,7 +72,7 @@ def test_run_writes_live_and_odometry_trajectories(tmp_path) -> None:
     from datasets.open import open_sequence
     from slam.runtime.wiring import run_slam
 
-    seq = open_sequence(synth_mcap(tmp_path / "seq.mcap", "figure8", 24))
+    seq = open_sequence(synth_mcap(tmp_path / "seq.mcap", "figure8", 36))
     cfg = dataclasses.replace(preset_config("euroc-stereo-imu"))
     cfg.player.sequential = True
     cfg.player.speed = 0.0
