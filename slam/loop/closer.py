@@ -194,8 +194,6 @@ class LoopStats:
     rejected_unconfirmed: int = 0
     rejected_by_pgo: int = 0
     pgo_runs: int = 0
-    unsearched: int = 0
-    """Keyframes added without a loop search (the end of a run out of time)."""
     pgo_ms: list[float] = field(default_factory=list)
     describe_ms: list[float] = field(default_factory=list)
     query_ms: list[float] = field(default_factory=list)
@@ -214,7 +212,6 @@ class LoopStats:
             "rejected_unconfirmed": self.rejected_unconfirmed,
             "rejected_by_pgo": self.rejected_by_pgo,
             "pgo_runs": self.pgo_runs,
-            "keyframes_unsearched": self.unsearched,
             "pgo": pct(self.pgo_ms),
             "describe": pct(self.describe_ms),
             "query": pct(self.query_ms),
@@ -325,12 +322,9 @@ class LoopCloser:
             self.store.set_odometry(kf_id, world_from_body)
 
     # ------------------------------------------------------------------ main entry
-    def add_keyframe(
-        self, kf: Keyframe, world_from_body_odom: np.ndarray, search: bool = True
-    ) -> LoopEvent | None:
+    def add_keyframe(self, kf: Keyframe, world_from_body_odom: np.ndarray) -> LoopEvent | None:
         """Describe, query, verify, gate; add the keyframe to the graph (and optimise inline
-        when ``inline_pgo`` and a loop was accepted). ``search=False``: into the graph and the
-        store only, no loop search (a backlog at the end of a run out of time)."""
+        when ``inline_pgo`` and a loop was accepted)."""
         t0 = time.perf_counter()
         desc = describe_keyframe(
             kf,
@@ -357,10 +351,6 @@ class LoopCloser:
         def exclude(other: int) -> bool:  # covisible: same segment, shares tracked landmarks
             return self.segment_of.get(other) == seg and other >= covisible_from
 
-        if not search:
-            self.stats.keyframes += 1
-            self.stats.unsearched += 1
-            return None
         t1 = time.perf_counter()
         with self.store.lock:
             detection = self.detector.process(kf.keyframe_id, kf.t_ns, desc.bow, exclude=exclude)

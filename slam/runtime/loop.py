@@ -71,7 +71,7 @@ class LoopCore(WorkerCore):
         for kid, pose in msg.refreshed.items():
             if kid in closer.odom:
                 closer.update_odometry(kid, pose)
-        event = closer.add_keyframe(msg.keyframe, msg.world_from_body_odom, self._search())
+        event = closer.add_keyframe(msg.keyframe, msg.world_from_body_odom)
         kid = msg.keyframe.keyframe_id
         # The mirror only serves relocalisation, which matches a new image against stored
         # landmark descriptors: the keyframe's own whole-image ORB set stays here (it
@@ -91,15 +91,6 @@ class LoopCore(WorkerCore):
                 None if event is None else event.correction,
             )
         ]
-
-    def _search(self) -> bool:
-        """Whether to search the next keyframe for loops: not once the end of the run has
-        spent half of the global adjustment's budget on the backlog (beside busy processes
-        the worker falls behind; each search can verify and optimise)."""
-        if self.end_began_s is None:
-            return True
-        budget_s = self.closer.global_adjustment_budget_s()
-        return budget_s is None or time.perf_counter() - self.end_began_s < 0.5 * budget_s
 
     def finish(self, interrupted: bool) -> LoopFinal:
         """The global adjustment (skipped when the run was interrupted; its time budget less
