@@ -126,6 +126,12 @@ def test_help_teaches():
     assert (
         "examples:" in proc.stdout and "--rerun" in proc.stdout and "slam eval ape" in proc.stdout
     )
+    # SEQ is described above its pointer, and the config keys' listing is named
+    above, _, below = proc.stdout.partition("(see the description above)")
+    assert below, "SEQ's help points to the description"
+    assert "SEQ can be:\n  our MCAP file" in above
+    assert "an EuRoC / TUM-VI folder" in above
+    assert "every key with its default,\nunit and what it does: slam config show [PRESET]" in above
 
 
 def test_run_with_mesh_writes_a_ply(seq_path, tmp_path):

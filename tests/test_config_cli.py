@@ -121,21 +121,6 @@ def test_a_misspelt_key_gets_a_suggestion(tmp_path: Path, yaml_text: str, messag
     assert "\n" not in text
 
 
-def test_run_help_says_what_seq_is_and_where_the_keys_are() -> None:
-    proc = subprocess.run(
-        [sys.executable, "-m", "tools.cli", "run", "--help"],
-        capture_output=True,
-        text=True,
-        cwd=PROJECT_ROOT,
-    )
-    assert proc.returncode == 0
-    above, _, below = proc.stdout.partition("(see the description above)")
-    assert below, "SEQ's help points to the description"
-    assert "SEQ can be:\n  our MCAP file" in above
-    assert "an EuRoC / TUM-VI folder" in above
-    assert "every key with its default,\nunit and what it does: slam config show [PRESET]" in above
-
-
 def test_a_closed_pipe_ends_quietly() -> None:
     """`slam config show | head -1`: no traceback when the reader has gone."""
     read_end, write_end = os.pipe()

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import cv2
@@ -663,13 +664,14 @@ class LoopCloser:
         self.map_generation += 1
         self.store.set_corrected(self.corrected_poses())
 
-    def global_adjustment_budget_s(self) -> float | None:
-        """The global adjustment's whole time budget (s; None: no limit)."""
-        c = self.cfg
-        if c.global_ba_budget_fraction <= 0 or not self.t_ns_of:
+    def global_adjustment_budget_s(self, keyframe_ids: Iterable[int] | None = None) -> float | None:
+        """The global adjustment's whole time budget (s; None: no limit): its fraction of the
+        time ``keyframe_ids`` span (default: every keyframe)."""
+        fraction = self.cfg.global_ba_budget_fraction
+        times = [self.t_ns_of[k] for k in (self.t_ns_of if keyframe_ids is None else keyframe_ids)]
+        if fraction <= 0 or not times:
             return None
-        span_s = (max(self.t_ns_of.values()) - min(self.t_ns_of.values())) * 1e-9
-        return c.global_ba_budget_fraction * span_s
+        return fraction * (max(times) - min(times)) * 1e-9
 
     def global_adjustment(self, spent_s: float = 0.0) -> GlobalBaResult | None:
         """Global bundle adjustment (:mod:`slam.loop.global_ba`) of the component holding the
@@ -699,12 +701,9 @@ class LoopCloser:
         ]
         c = self.cfg
         t0 = time.perf_counter()
-        budget_s = None
-        if c.global_ba_budget_fraction > 0:
-            span_s = (
-                max(self.t_ns_of[k] for k in nodes) - min(self.t_ns_of[k] for k in nodes)
-            ) * 1e-9
-            budget_s = max(c.global_ba_budget_fraction * span_s - spent_s, 0.0)
+        budget_s = self.global_adjustment_budget_s(nodes)
+        if budget_s is not None:
+            budget_s = max(budget_s - spent_s, 0.0)
         fusion_pairs = searched = 0
         if c.global_ba_fusion:
             share = None if budget_s is None else c.global_ba_fusion_budget_share * budget_s

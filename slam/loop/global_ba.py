@@ -264,8 +264,7 @@ def global_bundle_adjustment(
         thin[_spread_rows(lid, t_row[keep], p.max_keyframes_per_landmark)] = True
         # A keyframe the thinning would leave short of observations keeps all of its own.
         kfs, counts = np.unique(kf_of[thin], return_counts=True)
-        enough = set(kfs[counts >= 2 * p.min_observations].tolist())
-        thin |= ~np.isin(kf_of, list(enough))
+        thin |= ~np.isin(kf_of, kfs[counts >= 2 * p.min_observations])
         kf_of, lid = kf_of[thin], lid[thin]
         left, right, pts_cam = left[thin], right[thin], pts_cam[thin]
     # Landmarks in enough keyframes, each with an initial guess from its first usable keyframe.
