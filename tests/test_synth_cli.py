@@ -80,3 +80,31 @@ def test_synth_cli_initial_biases(tmp_path) -> None:
     back = open_sequence(out)
     assert np.allclose(back.imu().gyro_rad_s - ref.imu().gyro_rad_s, [0.01, -0.02, 0.03])
     assert np.allclose(back.imu().accel_m_s2 - ref.imu().accel_m_s2, [0.1, 0.2, -0.3])
+
+
+def test_synth_cli_camera_effects(tmp_path, capsys) -> None:
+    """`--camera realistic` with overrides writes what the library makes with the same effects;
+    out-of-range effects are one-line errors."""
+    from datasets.synth.camera_model import realistic_camera
+    from datasets.synth.imu_sim import realistic_imu
+
+    out = tmp_path / "real.mcap"
+    args = ["synth", str(out), "--duration", "0.3", "--camera", "realistic", "-q"]
+    assert main([*args, "--time-offset", "12.5", "--vignetting", "0.2", "--line-delay", "20"]) == 0
+    ref = make_synthetic_sequence(
+        "figure8",
+        duration_s=0.3,
+        camera=realistic_camera().replace(vignetting=0.2, line_delay_s=20e-6),
+        imu_effects=realistic_imu(),
+        time_offset_ns=12_500_000,
+    )
+    back = open_sequence(out)
+    assert back.calibration.time_offset_ns == 0
+    np.testing.assert_array_equal(back.frame(3).left, ref.frame(3).left)
+    np.testing.assert_array_equal(back.frame(3).right, ref.frame(3).right)
+    np.testing.assert_allclose(back.imu().accel_m_s2, ref.imu().accel_m_s2, atol=1e-12)
+    for bad in (["--vignetting", "1.5"], ["--imu-vibration", "1,2"], ["--time-offset", "900"]):
+        assert main(["synth", str(tmp_path / "c.mcap"), *bad, "-q"]) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "c.mcap").exists()

@@ -29,6 +29,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "fuse": ("tools.cmd_fuse", "dense mesh by TSDF fusion (RGB-D folder, or sequence + poses)"),
     "vocab": ("tools.cmd_vocab", "train or inspect a bag-of-words vocabulary"),
     "pgo": ("tools.cmd_pgo", "optimise a g2o 3-D pose graph"),
+    "calib": ("tools.cmd_calib", "check a recording's camera-IMU time offset and rotation"),
 }
 
 DESCRIPTION = """\

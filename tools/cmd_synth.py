@@ -3,10 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from datasets.synth.trajectories import PROFILES
 from slam.core.errors import InputError
+
+if TYPE_CHECKING:
+    from datasets.synth.camera_model import CameraEffects
+    from datasets.synth.imu_sim import ImuEffects
 
 DESCRIPTION = """\
 Render a synthetic stereo-inertial sequence with exact ground truth and write it as our MCAP
@@ -28,6 +34,34 @@ profiles (default duration):
                           fitted around it; --imu-csv adds its real EuRoC IMU stream instead
                           of the simulated one
 
+A real camera and a real rig (off by default; --camera realistic switches on a bundle, and
+each option below overrides its part):
+  --camera realistic   auto-exposure (0.2-10 ms, 3 dB gain steps) over a scene whose
+                       illumination drifts x0.3-x3.3 (24 s period), motion blur over each
+                       exposure, 30 % corner vignetting (cos^4), right camera 3 % brighter,
+                       read noise 1.2 grey levels + shot noise (40 e-/grey level); IMU:
+                       0.8 m/s^2 and 0.02 rad/s RMS propeller vibration near 73 Hz, 0.3 %
+                       scale errors, 1 mrad axis misalignment. No time offset, no rolling shutter.
+  --exposure MS        fixed exposure: motion blur over [stamp - MS, stamp] (sub-frames
+                       rendered at most 1.5 px of image motion apart, up to 24)
+  --auto-exposure      exposure and gain follow the illumination (--illumination A: its
+                       log amplitude, 1.2 = x0.3..x3.3); each gain step brightens or darkens
+                       one frame abruptly by the step
+  --vignetting F       corners darkened by F (0.3 = to 70 %), cos^4 of the field angle
+  --stereo-gain R      right camera's gain over the left's (1.03 = 3 % brighter)
+  --read-noise SIGMA, --shot-noise GL   sensor noise: sigma^2 = (SIGMA G)^2 + GL G signal
+  --line-delay US      rolling shutter: each row ends its exposure US microseconds after
+                       the one above (the middle row at the stamp)
+  --time-offset MS     an image stamped t shows the scene at IMU time t + MS (the file's
+                       calibration still says 0: what `slam calib check` should find)
+  --calib-rotation-error X,Y,Z   the file's camera-IMU rotation is off by this rotation
+                       vector (degrees); the images use the true one
+  --imu-vibration ACC,GYRO,HZ    vibration RMS (m/s^2, rad/s) near HZ (1.5 Hz wander)
+  --imu-scale-error F, --imu-misalignment MRAD   per-axis scale (std, fraction) and
+                       off-axis (std, mrad) errors of gyro and accelerometer
+The effects are drawn from --seed; rendering costs one scene render per sub-frame (a blurred
+fast frame ~0.5 s, see BENCHMARKS.md).
+
 Deterministic: the same options and --seed give bit-identical files. --seed drives the noise;
 the scene (textures, boxes) is fixed by --scene-seed.
 
@@ -37,6 +71,9 @@ examples:
   slam synth fast.mcap --profile aggressive --duration 20 --no-imu-noise
   slam synth biased.mcap --gyro-bias 0.002,-0.001,0.003 --accel-bias 0.05,0.02,-0.04
   slam synth lost.mcap --blackout 10:2                    # frames black from 10 s to 12 s
+  slam synth real.mcap --profile aggressive --camera realistic
+  slam synth late.mcap --camera realistic --time-offset 15 --calib-rotation-error 0,2,0
+  slam synth blur.mcap --exposure 8 --line-delay 30       # blur + rolling shutter only
   slam synth dense.mcap --duration 10 --depth-dir dense_depth --mesh scene.ply
   slam synth v101.mcap --from-trajectory mav0/state_groundtruth_estimate0/data.csv \\
       --imu-csv mav0/imu0/data.csv
@@ -71,8 +108,62 @@ def parse_vector3(text: str | None, option: str) -> tuple[float, float, float] |
     return x, y, z
 
 
+def parse_numbers(text: str | None, option: str, count: int) -> tuple[float, ...] | None:
+    """``A,B,...`` -> ``count`` floats."""
+    if text is None:
+        return None
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError as exc:
+        raise InputError(f"{option} expects {count} comma-separated numbers, got {text!r}") from exc
+    if len(values) != count:
+        raise InputError(f"{option} expects {count} comma-separated numbers, got {text!r}")
+    return values
+
+
+def effects_from_args(args: argparse.Namespace) -> tuple[CameraEffects, ImuEffects]:
+    """The --camera bundle with each individual option applied over it."""
+    from datasets.synth.camera_model import CameraEffects, realistic_camera
+    from datasets.synth.imu_sim import ImuEffects, realistic_imu
+
+    realistic = args.camera == "realistic"
+    cam = realistic_camera() if realistic else CameraEffects()
+    imu = realistic_imu() if realistic else ImuEffects()
+    cam_changes: dict[str, object] = {}
+    if args.exposure is not None:
+        cam_changes["exposure_s"] = args.exposure * 1e-3
+    if args.auto_exposure:
+        cam_changes["auto_exposure"] = True
+    if args.illumination is not None:
+        cam_changes["illumination_log_amplitude"] = args.illumination
+    if args.vignetting is not None:
+        cam_changes["vignetting"] = args.vignetting
+    if args.stereo_gain is not None:
+        cam_changes["stereo_gain"] = args.stereo_gain
+    if args.read_noise is not None:
+        cam_changes["read_noise_std"] = args.read_noise
+    if args.shot_noise is not None:
+        cam_changes["shot_noise_gl"] = args.shot_noise
+    if args.line_delay is not None:
+        cam_changes["line_delay_s"] = args.line_delay * 1e-6
+    imu_changes: dict[str, object] = {}
+    vib = parse_numbers(args.imu_vibration, "--imu-vibration", 3)
+    if vib is not None:
+        imu_changes.update(
+            vibration_accel_rms_m_s2=vib[0], vibration_gyro_rms_rad_s=vib[1], vibration_hz=vib[2]
+        )
+    if args.imu_scale_error is not None:
+        imu_changes["scale_error_std"] = args.imu_scale_error
+    if args.imu_misalignment is not None:
+        imu_changes["misalignment_std_rad"] = args.imu_misalignment * 1e-3
+    return cam.replace(**cam_changes), dataclasses.replace(imu, **imu_changes)  # type: ignore[arg-type]
+
+
 def run(args: argparse.Namespace) -> int:
     from datasets.synth.export import run_synth
+
+    camera, imu_effects = effects_from_args(args)
+    rot_err = parse_numbers(args.calib_rotation_error, "--calib-rotation-error", 3)
 
     result = run_synth(
         args.out,
@@ -92,6 +183,10 @@ def run(args: argparse.Namespace) -> int:
         depth_dir=args.depth_dir,
         mesh_path=args.mesh,
         progress=not args.quiet,
+        camera=camera,
+        imu_effects=imu_effects,
+        time_offset_ns=round(args.time_offset * 1e6),
+        calib_rotation_error_deg=None if rot_err is None else (rot_err[0], rot_err[1], rot_err[2]),
     )
     print(
         f"wrote {result.mcap_path}: {result.num_frames} stereo frames, {result.num_imu} IMU "
@@ -137,5 +232,26 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "digits as EuRoC's images, so they sort) and depth.json",
     )
     p.add_argument("--mesh", metavar="FILE.ply", type=Path, help="also write the scene mesh")
+    g = p.add_argument_group("camera and rig effects (see above)")
+    g.add_argument(
+        "--camera", choices=("clean", "realistic"), default="clean", help="effects bundle"
+    )
+    g.add_argument("--exposure", type=float, metavar="MS", help="fixed exposure (motion blur)")
+    g.add_argument("--auto-exposure", action="store_true", help="auto-exposure with gain steps")
+    g.add_argument("--illumination", type=float, metavar="A", help="illumination log amplitude")
+    g.add_argument("--vignetting", type=float, metavar="F", help="corner darkening, 0..0.9")
+    g.add_argument("--stereo-gain", type=float, metavar="R", help="right/left gain ratio")
+    g.add_argument("--read-noise", type=float, metavar="SIGMA", help="grey levels at gain 1")
+    g.add_argument("--shot-noise", type=float, metavar="GL", help="grey levels per electron")
+    g.add_argument("--line-delay", type=float, metavar="US", help="rolling shutter row delay")
+    g.add_argument(
+        "--time-offset", type=float, default=0.0, metavar="MS", help="camera-IMU time offset"
+    )
+    g.add_argument(
+        "--calib-rotation-error", metavar="X,Y,Z", help="wrong camera-IMU rotation (deg)"
+    )
+    g.add_argument("--imu-vibration", metavar="ACC,GYRO,HZ", help="IMU vibration RMS and Hz")
+    g.add_argument("--imu-scale-error", type=float, metavar="F", help="IMU scale error std")
+    g.add_argument("--imu-misalignment", type=float, metavar="MRAD", help="IMU axis error std")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)

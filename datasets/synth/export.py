@@ -16,7 +16,9 @@ import numpy as np
 from tqdm import tqdm
 
 from datasets.ply import write_ply_mesh
+from datasets.synth.camera_model import CameraEffects
 from datasets.synth.generator import SyntheticSequence
+from datasets.synth.imu_sim import ImuEffects
 from slam.core.atomic import write_atomic
 from slam.core.errors import InputError
 
@@ -100,6 +102,10 @@ def run_synth(
     depth_dir: str | os.PathLike[str] | None = None,
     mesh_path: str | os.PathLike[str] | None = None,
     progress: bool = True,
+    camera: CameraEffects | None = None,
+    imu_effects: ImuEffects | None = None,
+    time_offset_ns: int = 0,
+    calib_rotation_error_deg: tuple[float, float, float] | None = None,
 ) -> SynthResult:
     """Make a synthetic sequence and write it as MCAP (+ optional depth PNGs and PLY mesh)."""
     from datasets.mcap_io import write_sequence_mcap
@@ -119,6 +125,10 @@ def run_synth(
         imu_csv=imu_csv,
         gyro_bias0_rad_s=None if gyro_bias0_rad_s is None else np.asarray(gyro_bias0_rad_s),
         accel_bias0_m_s2=None if accel_bias0_m_s2 is None else np.asarray(accel_bias0_m_s2),
+        camera=camera,
+        imu_effects=imu_effects,
+        time_offset_ns=time_offset_ns,
+        calib_rotation_error_deg=calib_rotation_error_deg,
     )
     out = Path(out_mcap)
     write_sequence_mcap(seq, out, progress=progress)

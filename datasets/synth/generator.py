@@ -18,8 +18,15 @@ import numpy as np
 
 from datasets.rigs import FRAME_RATE_HZ, euroc_like_calibration
 from datasets.sequence import ImuArrays, Sequence
-from datasets.synth.imu_sim import read_imu_csv, simulate_imu
-from datasets.synth.render import StereoRenderer
+from datasets.synth.camera_model import (
+    CameraEffects,
+    ExposureSchedule,
+    exposure_schedule,
+    sensor_image,
+    vignetting_map,
+)
+from datasets.synth.imu_sim import ImuDistortion, ImuEffects, read_imu_csv, simulate_imu
+from datasets.synth.render import BAND_ROWS, StereoRenderer
 from datasets.synth.scene import Scene, build_scene, room_around_path
 from datasets.synth.trajectories import (
     Motion,
@@ -34,10 +41,14 @@ from slam.core.calibration import (
     ImuCalibration,
 )
 from slam.core.errors import InputError
+from slam.core.geometry import rotation_angle_rad
 from slam.core.messages import StereoFrame
 from slam.core.trajectory import Trajectory
 
 PREFETCH_FRAMES = 2  # frames rendered ahead by iter_frames()
+ROLLING_SHUTTER_BAND_ROWS = 16  # rows rendered at one time with a rolling shutter
+MAX_TIME_OFFSET_NS = 500_000_000  # injected camera-IMU offsets: +-0.5 s
+BLUR_NEAR_DEPTH_M = 1.0  # depth assumed when turning translation into image motion (sub-frames)
 
 
 @dataclass(frozen=True)
@@ -55,6 +66,10 @@ class SynthOptions:
     pixel_noise_std: float = 0.0  # grey levels, Gaussian
     trajectory_file: str | None = None
     imu_csv: str | None = None
+    camera: CameraEffects = CameraEffects()
+    imu_effects: ImuEffects = ImuEffects()
+    time_offset_ns: int = 0  # an image stamped t shows the scene at IMU time t + offset
+    calib_rotation_error_deg: tuple[float, float, float] | None = None  # rotation vector
 
 
 class SyntheticSequence(Sequence):
@@ -74,8 +89,13 @@ class SyntheticSequence(Sequence):
         options: SynthOptions,
         imu_gyro_bias_rad_s: np.ndarray | None = None,
         imu_accel_bias_m_s2: np.ndarray | None = None,
+        true_calibration: Calibration | None = None,
+        imu_distortion: ImuDistortion | None = None,
     ) -> None:
         super().__init__(name=name, calibration=calibration, ground_truth=ground_truth)
+        # the rig as it is (rendering); ``calibration`` is what the file says (it may be wrong)
+        self.true_calibration = true_calibration or calibration
+        self.imu_distortion = imu_distortion
         self.motion = motion
         self.motion_t0_s = motion_t0_s  # motion time of t_ns = frame_times_ns[0] (or imu[0])
         self.t0_ns = int(min(frame_times_ns[0], imu.t_ns[0] if len(imu) else frame_times_ns[0]))
@@ -86,10 +106,17 @@ class SyntheticSequence(Sequence):
         self._frame_times_ns = np.asarray(frame_times_ns, dtype=np.int64)
         self._imu = imu
         self._renderer: StereoRenderer | None = None
+        self.exposure: ExposureSchedule = exposure_schedule(
+            options.camera,
+            self.motion_time_s(self._frame_times_ns + options.time_offset_ns),
+            options.seed,
+        )
+        self._vignetting: list[np.ndarray] | None = None
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
         state["_renderer"] = None  # rebuilt on demand (pixel rays), keeps pickles small
+        state["_vignetting"] = None
         return state
 
     # --- Sequence interface ------------------------------------------------------------------
@@ -108,12 +135,72 @@ class SyntheticSequence(Sequence):
             )
             black = np.zeros(shape, np.uint8)
             return StereoFrame(t_ns=t_ns, left=black, right=black.copy(), index=index)
-        outs = self.renderer.render(self.world_from_body_at(t_ns))
-        images = [o.image for o in outs]
+        if self.options.camera.active:
+            images = self._camera_images(index)
+        else:
+            outs = self.renderer.render(self.world_from_body_at(self.content_time_ns(index)))
+            images = [o.image for o in outs]
         if self.options.pixel_noise_std > 0:
             images = [self._add_pixel_noise(img, index, k) for k, img in enumerate(images)]
         right = images[1] if len(images) > 1 else None
         return StereoFrame(t_ns=t_ns, left=images[0], right=right, index=index)
+
+    def content_time_ns(self, index: int) -> int:
+        """IMU-clock time the image of frame ``index`` shows (the end of its exposure): its
+        stamp plus the injected camera-IMU time offset."""
+        return int(self._frame_times_ns[index]) + int(self.options.time_offset_ns)
+
+    def _camera_images(self, index: int) -> list[np.ndarray]:
+        """Both cameras through :mod:`datasets.synth.camera_model`: radiance averaged over
+        sub-frames spread over the exposure window (and row bands at their own times with a
+        rolling shutter), scaled by brightness, vignetting and stereo gain, plus sensor noise."""
+        fx = self.options.camera
+        exposure_s = float(self.exposure.exposure_s[index]) if fx.blurs else 0.0
+        brightness = float(self.exposure.brightness[index])
+        gain = float(self.exposure.gain[index])
+        n_sub = self.subframes(index)
+        t_end_ns = self.content_time_ns(index)
+        height = self.true_calibration.cam0.intrinsics.height
+        band_rows = ROLLING_SHUTTER_BAND_ROWS if fx.line_delay_s > 0 else BAND_ROWS
+        centres = np.arange(0, height, band_rows) + (band_rows - 1) / 2.0
+        band_offset_s = (np.minimum(centres, height - 1) - (height - 1) / 2.0) * fx.line_delay_s
+        sub_offset_s = -exposure_s * (np.arange(n_sub) + 0.5) / n_sub
+        t_s = self.motion_time_s(t_end_ns)[None, None] + sub_offset_s[:, None] + band_offset_s
+        bodies = self.motion.sample(t_s.ravel()).world_from_body()
+        bodies = bodies.reshape(n_sub, len(band_offset_s), 4, 4)
+        if self._vignetting is None:
+            self._vignetting = [
+                vignetting_map(fx, cam.intrinsics) for cam in self.true_calibration.cameras
+            ]
+        images = []
+        for c, renderer in enumerate(self.renderer.cameras):
+            radiance = np.zeros((height, renderer.width), np.float32)
+            for j in range(n_sub):
+                radiance += renderer.render_radiance(
+                    bodies[j] @ renderer.camera.body_from_cam, band_rows
+                )
+            radiance *= np.float32(1.0 / n_sub)
+            scale = self._vignetting[c] * np.float32(brightness * (fx.stereo_gain if c else 1.0))
+            rng = np.random.default_rng([self.options.seed, index, c, 5])
+            images.append(sensor_image(radiance, scale, gain, fx, rng))
+        return images
+
+    def subframes(self, index: int) -> int:
+        """Sub-frames rendered over frame ``index``'s exposure: enough that the image moves by
+        at most ``subframe_spacing_px`` between two (rotation, plus translation seen at
+        ``BLUR_NEAR_DEPTH_M``), capped at ``max_subframes``."""
+        fx = self.options.camera
+        if not fx.blurs:
+            return 1
+        exposure_s = float(self.exposure.exposure_s[index])
+        t_end = float(self.motion_time_s(self.content_time_ns(index)))
+        ends = self.motion.sample(np.array([t_end - exposure_s, t_end])).world_from_body()
+        cam = self.true_calibration.cam0
+        a, b = ends[0] @ cam.body_from_cam, ends[1] @ cam.body_from_cam
+        angle = rotation_angle_rad(a[:3, :3].T @ b[:3, :3])
+        shift = float(np.linalg.norm(a[:3, 3] - b[:3, 3])) / BLUR_NEAR_DEPTH_M
+        motion_px = max(cam.intrinsics.fx, cam.intrinsics.fy) * (angle + shift)
+        return int(np.clip(np.ceil(motion_px / fx.subframe_spacing_px), 1, fx.max_subframes))
 
     def iter_frames(self) -> Iterator[StereoFrame]:
         """Frames in order, rendering up to ``PREFETCH_FRAMES`` ahead in a worker thread (numpy
@@ -133,7 +220,7 @@ class SyntheticSequence(Sequence):
     @property
     def renderer(self) -> StereoRenderer:
         if self._renderer is None:
-            self._renderer = StereoRenderer(self.scene, self.calibration.cameras)
+            self._renderer = StereoRenderer(self.scene, self.true_calibration.cameras)
         return self._renderer
 
     def motion_time_s(self, t_ns: np.ndarray | int) -> np.ndarray:
@@ -145,9 +232,10 @@ class SyntheticSequence(Sequence):
         return self.motion.sample(np.array([self.motion_time_s(t_ns)])).world_from_body()[0]
 
     def world_from_cam(self, index: int, cam: int = 0) -> np.ndarray:
-        """Exact 4x4 world_from_cam of frame ``index``."""
-        t_ns = int(self._frame_times_ns[index])
-        return self.world_from_body_at(t_ns) @ self.calibration.cameras[cam].body_from_cam
+        """Exact 4x4 world_from_cam of frame ``index`` (at the time its image shows, through
+        the true extrinsics)."""
+        t_ns = self.content_time_ns(index)
+        return self.world_from_body_at(t_ns) @ self.true_calibration.cameras[cam].body_from_cam
 
     def ground_truth_state(self) -> MotionSamples:
         """Full true state at the ground-truth times: positions, world velocities and
@@ -210,6 +298,10 @@ def make_synthetic_sequence(
     imu_calibration: ImuCalibration | None = None,
     gyro_bias0_rad_s: np.ndarray | None = None,
     accel_bias0_m_s2: np.ndarray | None = None,
+    camera: CameraEffects | None = None,
+    imu_effects: ImuEffects | None = None,
+    time_offset_ns: int = 0,
+    calib_rotation_error_deg: tuple[float, float, float] | None = None,
 ) -> SyntheticSequence:
     """Build a synthetic stereo-inertial sequence (rendering happens lazily, per frame).
 
@@ -219,6 +311,13 @@ def make_synthetic_sequence(
     the simulated IMU (it must share the trajectory file's clock). ``blackout``: (start_s,
     duration_s) relative to the first frame, frames in it are black. ``seed`` drives the IMU
     and pixel noise; ``scene_seed`` the textures and box sizes.
+
+    A real rig: ``camera`` (:class:`~datasets.synth.camera_model.CameraEffects`: blur,
+    auto-exposure, vignetting, stereo gain, sensor noise, rolling shutter), ``imu_effects``
+    (:class:`~datasets.synth.imu_sim.ImuEffects`: vibration, scale, misalignment),
+    ``time_offset_ns`` (an image stamped t shows the scene at IMU time t + offset; the file's
+    calibration says 0) and ``calib_rotation_error_deg`` (a rotation vector, degrees: the
+    file's body_from_cam rotations are this rotation off the rig's true ones, which render).
     """
     options = SynthOptions(
         profile=profile if trajectory_file is None else "file",
@@ -232,12 +331,27 @@ def make_synthetic_sequence(
         pixel_noise_std=pixel_noise_std,
         trajectory_file=trajectory_file,
         imu_csv=imu_csv,
+        camera=camera or CameraEffects(),
+        imu_effects=imu_effects or ImuEffects(),
+        time_offset_ns=int(time_offset_ns),
+        calib_rotation_error_deg=calib_rotation_error_deg,
     )
     if duration_s is not None and duration_s <= 0:
         raise InputError(f"duration must be positive, got {duration_s} s")
+    options.camera.validate()
+    options.imu_effects.validate()
+    if abs(time_offset_ns) > MAX_TIME_OFFSET_NS:
+        raise InputError(
+            f"time offset {time_offset_ns * 1e-6:.1f} ms is beyond +-{MAX_TIME_OFFSET_NS * 1e-6:.0f} ms"
+        )
+    if imu_csv is not None and (options.imu_effects.active):
+        raise InputError("IMU effects need the simulated IMU (not --imu-csv)")
     if imu_csv is not None and trajectory_file is None:
         raise InputError("--imu-csv needs --from-trajectory (the IMU must match a trajectory)")
     calib = euroc_like_calibration(imu_calibration)
+    given_calib = calib
+    if calib_rotation_error_deg is not None:
+        given_calib = _rotated_extrinsics(calib, np.radians(calib_rotation_error_deg))
     motion: Motion
     if trajectory_file is not None:
         motion = motion_from_file(trajectory_file)
@@ -268,6 +382,7 @@ def make_synthetic_sequence(
     imu_times = t0_ns + np.arange(0, dur_ns + 1, imu_step, dtype=np.int64)
     assert calib.imu is not None
     bg = ba = None
+    distortion = None
     if imu_csv is not None:
         imu = read_imu_csv(imu_csv, int(frame_times[0]), int(frame_times[-1]))
         if len(imu) == 0:
@@ -285,13 +400,17 @@ def make_synthetic_sequence(
             seed=seed,
             gyro_bias0_rad_s=gyro_bias0_rad_s,
             accel_bias0_m_s2=accel_bias0_m_s2,
+            effects=imu_effects,
         )
         imu, bg, ba = sim.arrays, sim.gyro_bias_rad_s, sim.accel_bias_m_s2
+        distortion = sim.distortion
     gt_samples = motion.sample((imu_times - t0_ns) * 1e-9)
     ground_truth = Trajectory.from_matrices(imu_times, gt_samples.world_from_body())
     return SyntheticSequence(
         name=name,
-        calibration=calib,
+        calibration=given_calib,
+        true_calibration=calib,
+        imu_distortion=distortion,
         motion=motion,
         motion_t0_s=0.0,
         scene=scene,
@@ -302,3 +421,15 @@ def make_synthetic_sequence(
         imu_gyro_bias_rad_s=bg,
         imu_accel_bias_m_s2=ba,
     )
+
+
+def _rotated_extrinsics(calib: Calibration, rotvec_rad: np.ndarray) -> Calibration:
+    """The calibration with every body_from_cam rotated by ``exp(rotvec)`` about the body
+    origin (the whole rig mis-calibrated against the IMU; the stereo pair stays consistent)."""
+    from dataclasses import replace
+
+    from slam.core.geometry import make_transform, so3_exp
+
+    err = make_transform(so3_exp(np.asarray(rotvec_rad, dtype=np.float64)), np.zeros(3))
+    cams = tuple(replace(c, body_from_cam=err @ c.body_from_cam) for c in calib.cameras)
+    return replace(calib, cameras=cams)

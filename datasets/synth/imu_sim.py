@@ -5,6 +5,16 @@ with ``g_world = (0, 0, -g)`` (so a still, level IMU reads +g along its up axis)
 Noise (Kalibr/EuRoC convention, continuous-time densities of :class:`ImuCalibration`):
 white noise ``sigma = density / sqrt(dt)`` per sample, bias ``b[k+1] = b[k] + rw * sqrt(dt) * n``.
 Deterministic for a given seed (numpy Generator).
+
+:class:`ImuEffects` (all off by default) adds what a real rig's IMU also reads, before biases
+and noise: ``meas = (I + S + M) @ exact + vibration``, per sensor (gyro, accel): ``S`` diagonal
+scale errors and ``M`` an off-diagonal axis misalignment (small rotation plus shear), both drawn
+once from the seed; vibration as from propellers: a narrow-band sinusoid near
+``vibration_hz`` whose frequency wanders by ``vibration_bandwidth_hz`` (a slow random walk of
+the motor speed), along a random fixed direction per sensor, with the given RMS. The
+vibration is sampled at the IMU times as it is, so a frequency above the IMU's Nyquist rate
+aliases (as in a real IMU without enough anti-alias filtering). Its displacement (micrometres at
+tens of Hz) is not rendered into the images.
 """
 
 from __future__ import annotations
@@ -12,19 +22,109 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.signal import lfilter
 
 from datasets.sequence import ImuArrays
 from datasets.synth.trajectories import Motion
 from slam.core.calibration import ImuCalibration
 
 
+@dataclass(frozen=True)
+class ImuEffects:
+    """Mounting and vibration effects of a synthetic IMU (all off by default)."""
+
+    vibration_accel_rms_m_s2: float = 0.0
+    vibration_gyro_rms_rad_s: float = 0.0
+    vibration_hz: float = 73.0
+    vibration_bandwidth_hz: float = 1.5  # RMS wander of the vibration frequency
+    scale_error_std: float = 0.0  # per axis, fraction (0.003 = 0.3 %)
+    misalignment_std_rad: float = 0.0  # per off-diagonal element
+
+    @property
+    def active(self) -> bool:
+        return self != ImuEffects()
+
+    def validate(self) -> None:
+        """InputError (one line, naming the parameter) for values outside their bounds."""
+        from slam.core.errors import InputError
+
+        bounds = {
+            "vibration_accel_rms_m_s2": (0.0, 50.0),
+            "vibration_gyro_rms_rad_s": (0.0, 5.0),
+            "vibration_hz": (0.1, 2000.0),
+            "vibration_bandwidth_hz": (0.0, 100.0),
+            "scale_error_std": (0.0, 0.2),
+            "misalignment_std_rad": (0.0, 0.1),
+        }
+        for name, (lo, hi) in bounds.items():
+            v = getattr(self, name)
+            if not lo <= v <= hi:
+                raise InputError(f"IMU effect {name} = {v} is outside [{lo}, {hi}]")
+
+
+def realistic_imu() -> ImuEffects:
+    """The IMU half of ``--camera realistic``: a multirotor's propeller vibration (0.8 m/s^2
+    and 0.02 rad/s RMS near 73 Hz), 0.3 % scale errors and 1 mrad axis misalignment."""
+    return ImuEffects(
+        vibration_accel_rms_m_s2=0.8,
+        vibration_gyro_rms_rad_s=0.02,
+        scale_error_std=0.003,
+        misalignment_std_rad=0.001,
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class ImuDistortion:
+    """The drawn effects: gyro/accel measurement matrices (3, 3) ``I + S + M`` and the
+    vibration added to each sample (N, 3)."""
+
+    gyro_matrix: np.ndarray
+    accel_matrix: np.ndarray
+    gyro_vibration_rad_s: np.ndarray
+    accel_vibration_m_s2: np.ndarray
+
+
+def draw_imu_distortion(effects: ImuEffects, t_s: np.ndarray, seed: int) -> ImuDistortion:
+    """The effects' random parts for samples at ``t_s``, deterministic by ``seed`` (a stream of
+    its own, so the IMU noise does not change when effects are switched on)."""
+    rng = np.random.default_rng([seed, 17])
+    mats = []
+    for _ in range(2):
+        m = np.eye(3) + np.diag(rng.standard_normal(3) * effects.scale_error_std)
+        off = rng.standard_normal((3, 3)) * effects.misalignment_std_rad
+        np.fill_diagonal(off, 0.0)
+        mats.append(m + off)
+    t = np.asarray(t_s, dtype=np.float64)
+    n = len(t)
+    vib = []
+    for rms in (effects.vibration_gyro_rms_rad_s, effects.vibration_accel_rms_m_s2):
+        direction = rng.standard_normal(3)
+        direction /= np.linalg.norm(direction)
+        phase0 = rng.uniform(0, 2 * np.pi)
+        if rms <= 0 or n == 0:
+            vib.append(np.zeros((n, 3)))
+            continue
+        # the motor speed wanders: an Ornstein-Uhlenbeck process with a 2 s time constant
+        # (unit variance; the IMU's times are evenly spaced, so one AR(1) filter does it)
+        dt = np.diff(t, prepend=t[0])
+        a = float(np.exp(-float(np.median(dt[1:])) / 2.0)) if n > 1 else 0.0
+        kicks = rng.standard_normal(n)
+        kicks[0] /= np.sqrt(1 - a * a)  # start in the stationary distribution
+        wander = lfilter([np.sqrt(1 - a * a)], [1.0, -a], kicks)
+        freq_hz = effects.vibration_hz + effects.vibration_bandwidth_hz * wander
+        phase = phase0 + 2 * np.pi * np.cumsum(freq_hz * dt)
+        vib.append(np.sqrt(2.0) * rms * np.sin(phase)[:, None] * direction)
+    return ImuDistortion(mats[0], mats[1], vib[0], vib[1])
+
+
 @dataclass(frozen=True, eq=False)
 class SimulatedImu:
-    """The IMU stream and the true biases (N, 3) that were added to it."""
+    """The IMU stream, the true biases (N, 3) that were added to it, and the drawn effects."""
 
     arrays: ImuArrays
     gyro_bias_rad_s: np.ndarray
     accel_bias_m_s2: np.ndarray
+    distortion: ImuDistortion | None = None
 
 
 def exact_imu(
@@ -48,15 +148,22 @@ def simulate_imu(
     seed: int = 0,
     gyro_bias0_rad_s: np.ndarray | None = None,
     accel_bias0_m_s2: np.ndarray | None = None,
+    effects: ImuEffects | None = None,
 ) -> SimulatedImu:
     """IMU samples at ``t_ns`` (int64; the motion is evaluated at ``t0_s + (t_ns - t_ns[0])``).
 
-    ``noise=False`` gives the exact measurements plus the (constant) initial biases.
+    ``noise=False`` gives the exact measurements plus the (constant) initial biases (and the
+    ``effects``, which are not noise: scale, misalignment, vibration).
     """
     t_ns = np.asarray(t_ns, dtype=np.int64)
     n = len(t_ns)
     t_s = t0_s + (t_ns - t_ns[0]).astype(np.float64) * 1e-9
     gyro, accel = exact_imu(motion, t_s, calib.gravity_m_s2)
+    distortion = None
+    if effects is not None and effects.active:
+        distortion = draw_imu_distortion(effects, t_s, seed)
+        gyro = gyro @ distortion.gyro_matrix.T + distortion.gyro_vibration_rad_s
+        accel = accel @ distortion.accel_matrix.T + distortion.accel_vibration_m_s2
     bg = np.tile(np.zeros(3) if gyro_bias0_rad_s is None else gyro_bias0_rad_s, (n, 1))
     ba = np.tile(np.zeros(3) if accel_bias0_m_s2 is None else accel_bias0_m_s2, (n, 1))
     if noise and n:
@@ -79,6 +186,7 @@ def simulate_imu(
         arrays=ImuArrays(t_ns=t_ns, gyro_rad_s=gyro, accel_m_s2=accel),
         gyro_bias_rad_s=bg,
         accel_bias_m_s2=ba,
+        distortion=distortion,
     )
 
 

@@ -135,6 +135,50 @@ class CameraRenderer:
             self._render_band(world_from_cam, rects, r0, r1, image, depth)
         return RenderOutput(image=image, depth_m=depth)
 
+    def render_radiance(self, world_from_cam: np.ndarray, band_rows: int = BAND_ROWS) -> np.ndarray:
+        """The image as float32 grey levels (not rounded): the radiance a camera model scales.
+
+        ``world_from_cam``: one 4x4 pose, or one per band of ``band_rows`` rows
+        (``(ceil(H / band_rows), 4, 4)``, a rolling shutter: each band seen at its own time)."""
+        poses = np.asarray(world_from_cam, dtype=np.float64)
+        n_bands = -(-self.height // band_rows)
+        if poses.ndim == 2:
+            poses = np.broadcast_to(poses, (n_bands, 4, 4))
+        if poses.shape != (n_bands, 4, 4):
+            raise ValueError(f"expected {n_bands} band poses for {band_rows}-row bands")
+        rects = self._box_rects_over(poses[0], poses[-1])
+        image = np.empty((self.height, self.width), np.float32)
+        for b, r0 in enumerate(range(0, self.height, band_rows)):
+            r1 = min(r0 + band_rows, self.height)
+            self._render_band(poses[b], rects, r0, r1, image, None)
+        return image
+
+    def _box_rects_over(
+        self, first: np.ndarray, last: np.ndarray
+    ) -> list[tuple[int, int, int, int] | None]:
+        """Box pixel rectangles covering both poses (the union, widened by 8 px when the poses
+        differ: a rolling shutter's bands move a little between its first and last pose)."""
+        a = [self._box_pixel_rect(b, np.linalg.inv(first)) for b in range(len(self.scene.boxes))]
+        if np.array_equal(first, last):
+            return a
+        b_ = [self._box_pixel_rect(b, np.linalg.inv(last)) for b in range(len(self.scene.boxes))]
+        out: list[tuple[int, int, int, int] | None] = []
+        m = 8
+        for ra, rb in zip(a, b_):
+            if ra is None and rb is None:
+                out.append(None)
+                continue
+            rs = [r for r in (ra, rb) if r is not None]
+            out.append(
+                (
+                    max(min(r[0] for r in rs) - m, 0),
+                    min(max(r[1] for r in rs) + m, self.height),
+                    max(min(r[2] for r in rs) - m, 0),
+                    min(max(r[3] for r in rs) + m, self.width),
+                )
+            )
+        return out
+
     def render_depth(self, world_from_cam: np.ndarray) -> np.ndarray:
         """Depth only (H, W) float32, z in metres: no texture sampling (about 2x faster)."""
         cam_from_world = np.linalg.inv(world_from_cam)
@@ -277,10 +321,13 @@ class CameraRenderer:
         level = np.log2(fp2)
         level *= f32(0.5)
         np.minimum(level, f32(len(scene.atlas_levels) - 1), out=level)
-        image_out[r0:r1] = self._sample(map_x, map_y, level)
+        image_out[r0:r1] = self._sample(map_x, map_y, level, rounded=image_out.dtype == np.uint8)
 
-    def _sample(self, map_x: np.ndarray, map_y: np.ndarray, level: np.ndarray) -> np.ndarray:
-        """Trilinear sampling: bilinear at each mip level, tent-weighted by ``level``."""
+    def _sample(
+        self, map_x: np.ndarray, map_y: np.ndarray, level: np.ndarray, rounded: bool = True
+    ) -> np.ndarray:
+        """Trilinear sampling: bilinear at each mip level, tent-weighted by ``level``
+        (``rounded=False``: float32, not rounded to uint8)."""
         levels = self.scene.atlas_levels
         k_lo = int(np.floor(float(level.min())))
         k_hi = min(int(np.ceil(float(level.max()))), len(levels) - 1)
@@ -296,11 +343,13 @@ class CameraRenderer:
                 borderMode=cv2.BORDER_REPLICATE,
             )
             if k_lo == k_hi:
-                return s
+                return s if rounded else s.astype(np.float32)
             w = np.abs(level - np.float32(k))
             np.subtract(np.float32(1.0), w, out=w)
             np.maximum(w, np.float32(0.0), out=w)
             out += w * s
+        if not rounded:
+            return out
         out += np.float32(0.5)
         return out.astype(np.uint8)
 

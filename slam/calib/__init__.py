@@ -1,0 +1,1 @@
+"""Camera-IMU calibration checks from a recording (`slam calib check`)."""
