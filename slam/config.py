@@ -102,6 +102,34 @@ class FrontendConfig:
     # bounds: solvePnPRansac asserts >= 4 points; more than max_features never track
     min_pnp_inliers: int = bounded(15, ge=4, le_field="max_features")
     """Fewer inliers than this is a tracking loss."""
+    map_reuse: bool = True
+    """At each keyframe, look for the untracked landmarks of the map that the camera should
+    see (``slam/frontend/landmark_map.py``) and track them again, so that a revisited place
+    pulls the pose back onto its old landmarks instead of drifting through with new ones."""
+    map_search_radius_px: int = bounded(8, ge=1, le=64)
+    """Half side of the window searched around a landmark's predicted pixel (the drift since
+    it was last seen must fit in it)."""
+    map_min_ncc: float = bounded(0.8, gt=0, le=1)
+    """Normalised cross-correlation a landmark's warped birth patch needs at its match."""
+    map_max_patch_rms: float = bounded(20.0, gt=0)
+    """The affine fit of the birth patch at the match: largest RMS residual, grey levels."""
+    map_max_candidates: int = bounded(120, ge=1)
+    """Landmarks searched per keyframe at most (spread over the image)."""
+    map_max_view_angle_deg: float = bounded(35.0, gt=0, le=90)
+    """A landmark is searched only when seen within this angle of its first view."""
+    map_max_scale_change: float = bounded(1.5, gt=1)
+    """...and at a distance within this factor of its first view's."""
+    map_min_inliers: int = bounded(12, ge=4)
+    """Landmarks found again that must agree on one pose (PnP) before they are used."""
+    map_min_inliers_alone: int = bounded(30, ge=4)
+    """When the old landmarks disagree with the tracked ones (more drift than the PnP
+    threshold), this many of them must agree on a pose by themselves."""
+    map_max_correction_m: float = bounded(0.3, gt=0)
+    """Largest move of the tracked pose onto the old landmarks (larger: a false revisit)."""
+    map_max_correction_deg: float = bounded(5.0, gt=0)
+    """Largest rotation of the tracked pose onto the old landmarks."""
+    map_max_landmarks: int = bounded(30000, ge=100)
+    """Landmarks the map keeps (the least recently seen go first): about 1.5 KB each."""
     keyframe_min_tracked_ratio: float = bounded(0.7, ge=0, le=1)
     """New keyframe when fewer than this fraction of the last keyframe's landmarks are tracked."""
     keyframe_min_interval_s: float = bounded(0.15, ge=0, le_field="keyframe_max_interval_s")

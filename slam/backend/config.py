@@ -84,6 +84,11 @@ class BackendConfig:
     """Observations with a reprojection error above this (against the current estimate) are
     rejected before insertion; landmarks with a mean error above it after optimisation are
     culled (no further observations)."""
+    map_landmarks: bool = True
+    """Landmarks seen again after they left the window (the front end found them in its map)
+    come back as variables held by a prior at their last estimated position."""
+    map_landmark_sigma_m: float = bounded(0.02, gt=0)
+    """Standard deviation of that prior, metres."""
     prior_pose_sigma_rad: float = bounded(0.01, gt=0)
     """Rotation sigma of the first/reset pose prior (yaw and position are gauge freedoms)."""
     prior_pose_sigma_m: float = bounded(0.01, gt=0)

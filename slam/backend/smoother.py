@@ -120,6 +120,11 @@ class BackendStats:
     observations_removed: int = 0
     landmarks_inserted: int = 0
     landmarks_culled: int = 0
+    map_landmarks_inserted: int = 0
+    """Landmarks seen again after they left the window: back as variables held by a prior at
+    their last estimated position (map reuse)..."""
+    map_observations: int = 0
+    """...and their observations."""
     keyframes_without_visual: int = 0
     update_times_s: list[float] = field(default_factory=list)  # wall time per add_keyframe
     update_cpu_s: list[float] = field(default_factory=list)  # this thread's CPU time per call
@@ -176,6 +181,11 @@ class VioBackend:
         self._landmarks: set[int] = set()
         self._tracks: dict[int, list[_Obs]] = {}
         self._culled: set[int] = set()
+        # last estimated position of every landmark that has been in the window (the map), and
+        # the map landmarks that are variables in the window again
+        self._positions: dict[int, np.ndarray] = {}
+        self._map_alive: set[int] = set()
+        self._map_prior = gtsam.noiseModel.Isotropic.Sigma(3, self.config.map_landmark_sigma_m)
         self._last_good: _GoodState | None = None
         self._t_origin_ns: int | None = None
         self._estimate = Estimate.pose_only(0, -1, np.eye(4), initialized=False)
@@ -416,6 +426,7 @@ class VioBackend:
         self._landmarks = set()
         self._tracks = {}
         self._smart = {}
+        self._map_alive = set()
         self._last_good = _GoodState(
             k, keyframe_id, t_ns, pose, np.asarray(velocity, float), bias, pose_vo
         )
@@ -505,12 +516,18 @@ class VioBackend:
         new_landmark_ids: set[int] = set()
         remove: list[int] = []
         smart_new: dict[int, Any] = {}
+        new_map: set[int] = set()
+        handled: set[int] = set()
+        if with_visual and cfg.map_landmarks:
+            handled = self._map_visual(kf, k, graph, new_values, stamps, t, factor_lids, new_map)
         if with_visual and cfg.landmark_model == "smart":
-            remove = self._smart_visual(kf, k, graph, poses, window_ks, factor_lids, smart_new)
+            remove = self._smart_visual(
+                kf, k, graph, poses, window_ks, factor_lids, smart_new, handled
+            )
         elif with_visual:
             gate_px = 2.0 * cfg.outlier_reprojection_px
             for lid, uv_l, uv_r in _observations(kf, cfg.max_landmarks_per_keyframe):
-                if lid in self._culled:
+                if lid in self._culled or lid in handled:
                     continue
                 if lid in self._landmarks:
                     p_w = vals.atPoint3(L(lid))
@@ -556,6 +573,8 @@ class VioBackend:
         self._states.append(_State(k, kf.keyframe_id, kf.t_ns, pose_vo))
         self._states = [s for s in self._states if values.exists(X(s.k))]
         self._landmarks = {lid for lid in self._landmarks if values.exists(L(lid))}
+        self._map_alive = {lid for lid in self._map_alive | new_map if values.exists(L(lid))}
+        self.stats.map_landmarks_inserted += len(new_map)
         oldest_k = self._states[0].k
         for lid in list(self._tracks):
             tr = [o for o in self._tracks[lid] if o.k >= oldest_k]
@@ -565,7 +584,7 @@ class VioBackend:
                 del self._tracks[lid]
         if smart_new:
             for lid, idx in zip(factor_lids, new_indices):
-                if lid >= 0:
+                if lid in smart_new:
                     self._smart[lid] = (idx, smart_new[lid])
             self._smart = {
                 lid: v for lid, v in self._smart.items() if lid in self._tracks or lid in smart_new
@@ -584,6 +603,45 @@ class VioBackend:
         )
         self.imu.trim(self._states[0].t_ns - int(1e9))
 
+    def _map_visual(
+        self,
+        kf: Keyframe,
+        k: int,
+        graph: gtsam.NonlinearFactorGraph,
+        new_values: gtsam.Values,
+        stamps: dict[int, float],
+        t: float,
+        factor_lids: list[int],
+        new_map: set[int],
+    ) -> set[int]:
+        """Observations of landmarks that left the window and are seen again (the front end
+        found them in its map): each comes back as a variable ``L(id)`` held by a prior at its
+        last estimated position (``map_landmark_sigma_m``), with projection factors, so a
+        revisit pulls the window onto the old landmarks instead of re-triangulating them from
+        drifted poses (VINS-Fusion's and Basalt's map-based relocalisation do the like with
+        keyframe poses). Returns the landmark ids handled here."""
+        handled: set[int] = set()
+        for lid, uv_l, uv_r in _observations(kf, len(kf.landmark_ids)):
+            if lid in self._culled:
+                continue
+            if lid in self._map_alive:
+                pass
+            elif lid in self._tracks or lid in self._landmarks or lid in self._smart:
+                continue  # still in the window: a plain landmark
+            else:
+                pos = self._positions.get(lid)
+                if pos is None:
+                    continue
+                new_values.insert(L(lid), pos)
+                graph.add(gtsam.PriorFactorPoint3(L(lid), pos, self._map_prior))
+                factor_lids.append(-1)
+                new_map.add(lid)
+            stamps[L(lid)] = t
+            self._add_projection(graph, k, lid, uv_l, uv_r, factor_lids)
+            self.stats.map_observations += 1
+            handled.add(lid)
+        return handled
+
     def _smart_visual(
         self,
         kf: Keyframe,
@@ -593,6 +651,7 @@ class VioBackend:
         window_ks: set[int],
         factor_lids: list[int],
         smart_new: dict[int, Any],
+        handled: set[int],
     ) -> list[int]:
         """Smart stereo-rig factors: one per landmark, rebuilt with every new observation (the
         previous one is removed). Returns the factor indices to remove."""
@@ -601,7 +660,7 @@ class VioBackend:
         existing = self._live_smoother().getFactors()
         remove: list[int] = []
         for lid, uv_l, uv_r in _observations(kf, cfg.max_landmarks_per_keyframe):
-            if lid in self._culled:
+            if lid in self._culled or lid in handled:
                 continue
             prev = self._smart.get(lid)
             track = [o for o in self._tracks.get(lid, []) if o.k in window_ks]
@@ -836,6 +895,12 @@ class VioBackend:
         else:
             lids = np.array(sorted(self._landmarks), dtype=np.int64)
             pts = np.array([vals.atPoint3(L(int(i))) for i in lids]).reshape(-1, 3)
+        for lid, p in zip(lids.tolist(), pts, strict=True):
+            self._positions[lid] = p  # a map landmark's own entry stays its first estimate
+        if self._map_alive:
+            alive = sorted(self._map_alive)
+            lids = np.concatenate([lids, np.asarray(alive, np.int64)])
+            pts = np.vstack([pts, [vals.atPoint3(L(i)) for i in alive]])
         return Estimate(
             t_ns=last.t_ns,
             keyframe_id=last.keyframe_id,

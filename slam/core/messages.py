@@ -142,6 +142,10 @@ class TrackingResult:
     map_generation: int = 0  # of the correction applied (0: none yet)
     map_jump_m: float = 0.0
     map_jump_deg: float = 0.0
+    anchor_keyframe_id: int = -1
+    """While tracked against old landmarks found again in the map: the keyframe most of them
+    were born at (-1: none)."""
+    feature_reobserved: np.ndarray | None = None  # (N,) bool over feature_pixels: found again
 
 
 @dataclass(frozen=True)
@@ -217,6 +221,9 @@ class LoopCorrection:
     map_generation: int  # increments with every correction
     map_from_odom: dict[int, np.ndarray]
     corrected_keyframe_poses: dict[int, np.ndarray]
+    keyframe_map_from_odom: dict[int, np.ndarray] = field(default_factory=dict)
+    """keyframe id -> its corrected pose @ inverse(its odometry pose): the correction of what
+    was tracked relative to that keyframe's landmarks."""
 
 
 @dataclass(frozen=True, eq=False)

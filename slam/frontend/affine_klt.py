@@ -85,7 +85,7 @@ def empty_templates(half_window_px: int) -> AffineTemplates:
     )
 
 
-def _sample(image: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+def sample_image(image: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
     """Bilinear samples of ``image`` at pixel coordinates ``xs``, ``ys`` (N, P): (N, P) float32."""
     if xs.size == 0:
         return np.zeros(xs.shape, np.float32)
@@ -118,7 +118,7 @@ def build_templates(
     # sub-pixel, so the template is resampled, not cut from the pixel grid)
     xs = pts[:, 0:1] + offsets[None, :, 0]
     ys = pts[:, 1:2] + offsets[None, :, 1]
-    vals = _sample(
+    vals = sample_image(
         image,
         np.concatenate([xs, xs + 0.5, xs - 0.5, xs, xs]),
         np.concatenate([ys, ys, ys, ys + 0.5, ys - 0.5]),
@@ -174,7 +174,7 @@ def _residuals(
     """Zero-mean residual (N, P) of each template warped into ``image``, and the warped
     coordinates (N, 2, P)."""
     coords = lin @ templates.offsets.T[None] + pts[:, :, None]
-    vals = _sample(image, coords[:, 0], coords[:, 1])
+    vals = sample_image(image, coords[:, 0], coords[:, 1])
     err = vals - vals.mean(axis=1, keepdims=True) - templates.patches
     return err, coords
 
@@ -307,6 +307,26 @@ class TrackTemplates:
         ids = np.asarray(landmark_ids, dtype=np.int64)
         if len(ids):
             self._pending.append((ids.copy(), np.asarray(px, np.float32).copy(), image))
+
+    def restore(
+        self, landmark_ids: np.ndarray, templates: AffineTemplates, linear: np.ndarray
+    ) -> None:
+        """Tracks of older landmarks found again (:mod:`slam.frontend.landmark_map`), with
+        templates made from their birth patches and their fitted warps ``linear`` (N, 2, 2):
+        inserted in id order."""
+        self.build_pending()
+        ids = np.asarray(landmark_ids, dtype=np.int64)
+        if len(ids) == 0:
+            return
+        keep = ~np.isin(self.ids, ids)
+        all_ids = np.concatenate([self.ids[keep], ids])
+        order = np.argsort(all_ids, kind="stable")
+        merged = AffineTemplates.concatenate(
+            [self.templates.take(np.flatnonzero(keep)), templates], self.half_window_px
+        )
+        self.ids = all_ids[order]
+        self.templates = merged.take(order)
+        self.linear = np.concatenate([self.linear[keep], np.asarray(linear, np.float32)])[order]
 
     def build_pending(self) -> None:
         pending, self._pending = self._pending, []

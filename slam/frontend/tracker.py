@@ -37,6 +37,7 @@ from slam.core.messages import Estimate, FrontendCorrection, Keyframe, StereoFra
 from slam.cputime import runqueue_wait_ns, thread_cpu_s
 from slam.frontend.affine_klt import TrackTemplates
 from slam.frontend.features import build_pyramid, detect_features, track_klt
+from slam.frontend.landmark_map import LandmarkMap, MapMatches, SearchParams
 from slam.frontend.stereo import StereoMatcher
 from slam.imu_buffer import ImuBuffer, integrate_gyro, propagate_pose
 
@@ -59,6 +60,30 @@ class FrontendStats:
     track_refits_kept: int = 0
     """...and kept (the others were weak, moved too far or degenerated)."""
     state_log: list[tuple[int, str]] = field(default_factory=list)
+    map_searches: int = 0
+    """Keyframes at which untracked landmarks of the map were searched (map reuse)..."""
+    map_candidates: int = 0
+    """...landmarks the camera should have seen there, summed..."""
+    map_found: int = 0
+    """...found again by their patch, summed..."""
+    map_reobserved: int = 0
+    """...and kept after the check against each other (PnP), summed."""
+    map_rejected: int = 0
+    """Searches whose matches disagreed with the tracked pose by more than
+    ``map_max_correction_m`` / ``_deg`` (a false revisit) or among themselves."""
+    map_corrections: int = 0
+    """Searches that moved the local map onto the older landmarks."""
+    map_correction_max_m: float = 0.0
+    landmark_frames: int = 0
+    """Frames tracked with landmarks, and the landmarks they tracked (PnP inliers)..."""
+    landmarks_tracked: int = 0
+    landmarks_tracked_old: int = 0
+    """...of which found again in the map."""
+    revisit_frames: int = 0
+    """Frames after a keyframe whose search had at least ``map_min_inliers`` candidates, and
+    their landmarks (PnP inliers), all and found again."""
+    revisit_landmarks: int = 0
+    revisit_landmarks_old: int = 0
     after_pose_ms: list[float] = field(default_factory=list)
     """Wall time of each frame's work after its pose was published (:meth:`FrontEnd.after_pose`:
     keyframe creation, new landmarks' templates), ms."""
@@ -80,6 +105,7 @@ class FrontEnd:
         self.calib = calib
         self.cfg = cfg
         self.imu = imu
+        self.has_backend = estimate_source is not None
         self.estimate_source = estimate_source or (lambda: None)
         self.corrections: list[FrontendCorrection] = []
         """Corrections applied since the owner last took them (:meth:`take_corrections`)."""
@@ -96,6 +122,10 @@ class FrontEnd:
         self.ids = np.zeros(0, np.int64)
         self.ages = np.zeros(0, np.int64)
         self.landmarks: dict[int, np.ndarray] = {}
+        self.landmark_map = LandmarkMap(cfg.map_max_landmarks)
+        self.reobserved_ids: set[int] = set()  # tracked ids found again in the map
+        self._revisit = False  # the last keyframe's search saw enough of the map
+        self._anchor_kf = -1  # birth keyframe of the old landmarks this frame is tracked on
         self.templates = TrackTemplates(cfg.affine_half_window_px, cfg.affine_iterations)
         self.pyr_prev: np.ndarray | None = None
         self.t_prev_ns = 0
@@ -159,14 +189,21 @@ class FrontEnd:
         # The first initialised estimate moves us from the VO frame (the first body pose)
         # into the back end's gravity-aligned world: a change of frame, not a correction, so
         # everything already output must move with it (``reframe``).
+        if not self.reframed:
+            self.landmark_map.transform(correction)
         self.corrections.append(FrontendCorrection(est.t_ns, correction, not self.reframed))
         self.reframed = True
-        rot, trans = correction[:3, :3], correction[:3, 3]
-        for lid in self.landmarks:
-            self.landmarks[lid] = rot @ self.landmarks[lid] + trans
+        self._move_world(correction)
         for lid, pos in zip(est.landmark_ids.tolist(), est.landmark_positions_world, strict=False):
             if lid in self.landmarks:
                 self.landmarks[lid] = np.asarray(pos, dtype=float)
+        self.landmark_map.update_positions(est.landmark_ids, est.landmark_positions_world)
+
+    def _move_world(self, correction: np.ndarray) -> None:
+        """Move the local map and the poses by ``correction`` (new_from_old)."""
+        rot, trans = correction[:3, :3], correction[:3, 3]
+        for lid in self.landmarks:
+            self.landmarks[lid] = rot @ self.landmarks[lid] + trans
         for kid in self.kf_poses:
             self.kf_poses[kid] = correction @ self.kf_poses[kid]
         if self.world_from_body is not None:
@@ -238,7 +275,37 @@ class FrontEnd:
             cpu_ms=(thread_cpu_s() - self._cpu_start_s) * 1e3,
             runqueue_ms=runqueue_ms,
             in_backend_world=self.reframed,
+            anchor_keyframe_id=self._anchor_kf if pose is not None else -1,
+            feature_reobserved=np.array(
+                [i in self.reobserved_ids for i in self.ids.tolist()], dtype=bool
+            ),
         )
+
+    def _retire(self, lids: list[int]) -> None:
+        """Landmarks no longer tracked go to the map (the back end keeps its own)."""
+        if lids:
+            self.landmark_map.retire(np.asarray(lids), np.array([self.landmarks[i] for i in lids]))
+        for lid in lids:
+            del self.landmarks[lid]
+            self.reobserved_ids.discard(lid)
+
+    def _count_landmarks(self, lids: np.ndarray) -> None:
+        """Per-frame counts of tracked landmarks (PnP inliers), all and found again."""
+        n = len(lids)
+        old_ids = [i for i in lids.tolist() if i in self.reobserved_ids]
+        old = len(old_ids)
+        self._anchor_kf = (
+            self.landmark_map.anchor_keyframe(np.asarray(old_ids))
+            if old >= self.cfg.map_min_inliers
+            else -1
+        )
+        self.stats.landmark_frames += 1
+        self.stats.landmarks_tracked += n
+        self.stats.landmarks_tracked_old += old
+        if self._revisit:
+            self.stats.revisit_frames += 1
+            self.stats.revisit_landmarks += n
+            self.stats.revisit_landmarks_old += old
 
     def _lose(self, frame: StereoFrame, t_start: float, reason: str) -> TrackingResult:
         if self.mapped:
@@ -249,7 +316,8 @@ class FrontEnd:
         self.px = np.zeros((0, 2), np.float32)
         self.ids = np.zeros(0, np.int64)
         self.ages = np.zeros(0, np.int64)
-        self.landmarks.clear()
+        self._retire(list(self.landmarks))
+        self._anchor_kf = -1
         self.templates.clear()
         self.world_from_body = None
         self.prev_world_from_body = None
@@ -404,6 +472,7 @@ class FrontEnd:
         rot, _ = cv2.Rodrigues(rvec)
         cam_from_world = make_transform(rot, tvec.ravel())
         pose = invert_transform(cam_from_world) @ self.cam0_from_body
+        self._count_landmarks(self.ids[idx[inl]])
         # drop PnP outliers from the tracks
         keep = np.ones(len(self.ids), dtype=bool)
         outliers = np.setdiff1d(np.arange(len(idx)), inl)
@@ -416,8 +485,7 @@ class FrontEnd:
         self.stats.tracked += 1
         # forget landmarks that are no longer tracked (the back end keeps its own)
         tracked = set(self.ids.tolist())
-        for lid in [lid for lid in self.landmarks if lid not in tracked]:
-            del self.landmarks[lid]
+        self._retire([lid for lid in self.landmarks if lid not in tracked])
         keyframe = self._need_keyframe(frame.t_ns, n_in)
         if keyframe:
             self._keyframe_due = (frame, pyr)  # made by after_pose, with the next id
@@ -460,7 +528,8 @@ class FrontEnd:
         self.px = np.zeros((0, 2), np.float32)
         self.ids = np.zeros(0, np.int64)
         self.ages = np.zeros(0, np.int64)
-        self.landmarks.clear()
+        self._retire(list(self.landmarks))
+        self._anchor_kf = -1
         self.templates.clear()
         pose = self.last_known_pose.copy()
         prior = self._imu_prior(frame.t_ns) if self.stats.segments else None
@@ -526,10 +595,154 @@ class FrontEnd:
             kf,
         )
 
+    def _reuse_map(self, frame: StereoFrame) -> None:
+        """Find untracked landmarks of the map in this keyframe's image and track them again.
+
+        The matches must agree on one pose (PnP RANSAC from the tracked pose); that pose may
+        differ from the tracked one by the drift since the landmarks were last seen, within
+        ``map_max_correction_m`` / ``_deg``. The local map then moves onto the old landmarks
+        (a :class:`FrontendCorrection`, as when the back end re-anchors it): from this frame
+        on the pose is tracked against both, in the old landmarks' frame.
+        """
+        assert self.world_from_body is not None
+        cfg = self.cfg
+        params = SearchParams(
+            radius_px=cfg.map_search_radius_px,
+            min_ncc=cfg.map_min_ncc,
+            max_candidates=cfg.map_max_candidates,
+            max_view_angle_deg=cfg.map_max_view_angle_deg,
+            max_scale_change=cfg.map_max_scale_change,
+            half_window_px=cfg.affine_half_window_px,
+            max_rms=cfg.map_max_patch_rms,
+        )
+        world_from_cam = self.world_from_body @ self.body_from_cam0
+        found = self.landmark_map.search(
+            frame.left, world_from_cam, self.cam0, self.segment_id, params
+        )
+        self.stats.map_searches += 1
+        self.stats.map_candidates += found.candidates
+        self.stats.map_found += len(found.ids)
+        self._revisit = found.candidates >= cfg.map_min_inliers
+        if len(found.ids) < cfg.map_min_inliers:
+            return
+        # checked together with the tracked landmarks: one pose must fit both (the tracked
+        # ones alone fix it well; a few old landmarks alone can trade rotation for translation)
+        has_lm = np.array([i in self.landmarks for i in self.ids.tolist()], dtype=bool)
+        tracked_obj = np.array([self.landmarks[i] for i in self.ids[has_lm].tolist()]).reshape(
+            -1, 3
+        )
+        obj = np.vstack([tracked_obj, found.positions_world])
+        img = np.vstack(
+            [
+                self._undistorted_px(self.px[has_lm]).reshape(-1, 2),
+                self._undistorted_px(found.pixels),
+            ]
+        )
+        cam_from_world = self.cam0_from_body @ invert_transform(self.world_from_body)
+        rvec, _ = cv2.Rodrigues(cam_from_world[:3, :3])
+        tvec = cam_from_world[:3, 3].reshape(3, 1).copy()
+        ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+            obj,
+            img,
+            self.K,
+            None,
+            rvec,
+            tvec,
+            useExtrinsicGuess=True,
+            iterationsCount=100,
+            reprojectionError=cfg.pnp_reprojection_px,
+            confidence=0.999,
+            flags=cv2.SOLVEPNP_ITERATIVE,
+        )
+        n_tracked = len(tracked_obj)
+        inl = np.zeros(0, np.int64) if inliers is None else inliers.ravel()
+        old_inl = inl[inl >= n_tracked] - n_tracked
+        if not ok or len(old_inl) < cfg.map_min_inliers:
+            # drifted by more than the inlier threshold: the old landmarks alone, if they are
+            # many enough to fix the pose well by themselves
+            obj, img = obj[n_tracked:], img[n_tracked:]
+            rvec, _ = cv2.Rodrigues(cam_from_world[:3, :3])
+            tvec = cam_from_world[:3, 3].reshape(3, 1).copy()
+            ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+                obj,
+                img,
+                self.K,
+                None,
+                rvec,
+                tvec,
+                useExtrinsicGuess=True,
+                iterationsCount=100,
+                reprojectionError=cfg.pnp_reprojection_px,
+                confidence=0.999,
+                flags=cv2.SOLVEPNP_ITERATIVE,
+            )
+            inl = np.zeros(0, np.int64) if inliers is None else inliers.ravel()
+            old_inl = inl
+            if not ok or len(inl) < cfg.map_min_inliers_alone:
+                self.stats.map_rejected += 1
+                return
+        rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], self.K, None, rvec, tvec)
+        rot, _ = cv2.Rodrigues(rvec)
+        pose = invert_transform(make_transform(rot, tvec.ravel())) @ self.cam0_from_body
+        correction = nearest_rigid(pose @ invert_transform(self.world_from_body))
+        moved_m = float(np.linalg.norm(correction[:3, 3]))
+        if (
+            moved_m > cfg.map_max_correction_m
+            or np.degrees(rotation_angle_rad(correction[:3, :3])) > cfg.map_max_correction_deg
+        ):
+            self.stats.map_rejected += 1
+            self.stats.state_log.append(
+                (frame.t_ns, f"map landmarks found again but {moved_m:.2f} m away: ignored")
+            )
+            return
+        inl = old_inl
+        self.stats.map_corrections += 1
+        import os
+
+        if os.environ.get("MAPDBG"):
+            self.stats.state_log.append(
+                (
+                    frame.t_ns,
+                    f"MAPDBG snap {moved_m * 100:.2f} cm {np.degrees(rotation_angle_rad(correction[:3, :3])):.2f} deg cand {found.candidates} found {len(found.ids)} inl {len(inl)}",
+                )
+            )
+        self.stats.map_correction_max_m = max(self.stats.map_correction_max_m, moved_m)
+        self.corrections.append(FrontendCorrection(frame.t_ns, correction, False))
+        self._move_world(correction)
+        self._track_again(found.take(inl))
+
+    def _track_again(self, found: MapMatches) -> None:
+        """Add the landmarks found again to the tracks; a track of a newer landmark on the
+        same spot (the same point, found twice) gives way to the older one."""
+        near = np.zeros(len(self.px), bool)
+        if len(self.px):
+            d = np.linalg.norm(
+                self.px[:, None, :] - found.pixels[None, :, :].astype(np.float32), axis=2
+            )
+            near = d.min(axis=1) < 2.0
+        if near.any():
+            self._retire([int(i) for i in self.ids[near].tolist() if i in self.landmarks])
+            keep = ~near
+            self.px, self.ids, self.ages = self.px[keep], self.ids[keep], self.ages[keep]
+        self.px = np.vstack([self.px, found.pixels.astype(np.float32)])
+        self.ids = np.concatenate([self.ids, found.ids])
+        self.ages = np.concatenate([self.ages, np.zeros(len(found.ids), np.int64)])
+        for lid, pos in zip(found.ids.tolist(), found.positions_world, strict=True):
+            self.landmarks[lid] = np.asarray(pos, float)
+        self.reobserved_ids.update(found.ids.tolist())
+        self.landmark_map.mark_tracked(found.ids)
+        if self.cfg.affine_refinement:
+            self.templates.restore(found.ids, found.templates, found.linear)
+        self.stats.map_reobserved += len(found.ids)
+
     def _make_keyframe(
         self, frame: StereoFrame, pyr: np.ndarray, new_segment: bool = False
     ) -> Keyframe | None:
         assert self.world_from_body is not None
+        self._revisit = False
+        in_final_world = self.reframed or not self.has_backend
+        if self.cfg.map_reuse and self.mapped and not new_segment and in_final_world:
+            self._reuse_map(frame)
         new_px = detect_features(frame.left, self.px, self.cfg)
         px = np.vstack([self.px, new_px]).astype(np.float32)
         ids = np.concatenate([self.ids, np.full(len(new_px), -1, np.int64)])
@@ -554,6 +767,17 @@ class FrontEnd:
             ids[need] = new_ids
             for lid, p in zip(new_ids.tolist(), pts_world, strict=True):
                 self.landmarks[lid] = p
+            self.landmark_map.add(
+                new_ids,
+                pts_world,
+                px[need],
+                frame.left,
+                world_from_cam,
+                self.cam0,
+                self.segment_id + 1 if new_segment else self.segment_id,
+                self.next_keyframe_id,
+                refined=not self.has_backend,
+            )
             if self.cfg.affine_refinement:
                 self.templates.keep_only(ids[(ids >= 0) & ~need])
                 self.templates.add(new_ids, px[need], frame.left)

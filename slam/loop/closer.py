@@ -280,7 +280,8 @@ class LoopCloser:
         self.last_of_segment: dict[int, int] = {}
         self.prev_in_segment: dict[int, int] = {}
         self.component: dict[int, int] = {}  # segment -> root segment (union-find)
-        self.first_kf_of_landmark: dict[int, int] = {}
+        self.track_start_of_landmark: dict[int, int] = {}  # keyframe id
+        self.last_kf_of_landmark: dict[int, int] = {}
         self.loops: list[LoopRecord] = []
         self.map_generation = 0
         self.needs_pgo = False
@@ -341,12 +342,17 @@ class LoopCloser:
         self.store.add_description(desc, world_from_body_odom)
         if self.cfg.global_ba:
             self.observations[kf.keyframe_id] = self._observations(kf)
-        covisible_from = min(
-            (self.first_kf_of_landmark.get(int(i), kf.keyframe_id) for i in desc.landmark_ids),
-            default=kf.keyframe_id,
-        )
+        # covisible: the keyframes since the oldest start of the landmark tracks that go on
+        # from the previous keyframe; a landmark seen again after a gap (the front end found
+        # it in its map) starts a new track, so a revisit stays a loop
+        prev_kf = self.prev_in_segment.get(kf.keyframe_id)
+        covisible_from = kf.keyframe_id
         for lid in np.asarray(kf.landmark_ids).tolist():
-            self.first_kf_of_landmark.setdefault(int(lid), kf.keyframe_id)
+            lid = int(lid)
+            if prev_kf is None or self.last_kf_of_landmark.get(lid) != prev_kf:
+                self.track_start_of_landmark[lid] = kf.keyframe_id
+            covisible_from = min(covisible_from, self.track_start_of_landmark[lid])
+            self.last_kf_of_landmark[lid] = kf.keyframe_id
         seg = kf.segment_id
 
         def exclude(other: int) -> bool:  # covisible: same segment, shares tracked landmarks
@@ -828,6 +834,7 @@ class LoopCloser:
             map_generation=self.map_generation,
             map_from_odom={s: m.copy() for s, m in self.map_from_odom.items()},
             corrected_keyframe_poses=self.corrected_poses(),
+            keyframe_map_from_odom=self.keyframe_map_from_odom(),
         )
         self._last_correction = correction
         return correction

@@ -34,7 +34,8 @@ class FrontendStage(Stage):
         self.frontend = frontend
         self.map_source = map_source
         self._map_generation = 0
-        self._map_from_odom: dict[int, np.ndarray] = {}
+        self._correction: LoopCorrection | None = None
+        self._applied: tuple[int, np.ndarray] | None = None  # segment, correction last applied
         threads = frontend.cfg.opencv_threads
         cv2.setNumThreads(threads if threads > 0 else -1)  # this process's OpenCV; -1: default
 
@@ -50,38 +51,35 @@ class FrontendStage(Stage):
 
     def _in_map(self, result: TrackingResult) -> TrackingResult:
         """The result with its pose in the loop-corrected map as known now: odometry composed
-        with the latest correction of its segment (VINS-Fusion publishes the same; the
-        odometry itself is never moved). A new correction's jump is measured on this frame."""
+        with the latest correction (VINS-Fusion publishes the same; the odometry itself is
+        never moved by loop closure). The correction is its segment's newest, or, while the
+        frame is tracked against old landmarks found again in the map (its
+        ``anchor_keyframe_id``), the correction of the keyframe they were born at: the
+        odometry is then tied to them, so the map moves it as it moved them. A change of the
+        correction applied is a jump, measured on this frame."""
         corr = None if self.map_source is None else self.map_source()
         if corr is not None and corr.map_generation != self._map_generation:
-            old, self._map_from_odom = self._map_from_odom, dict(corr.map_from_odom)
+            self._correction = corr
             self._map_generation = corr.map_generation
-            jump = self._map_jump(result, old)
-        else:
-            jump = (0.0, 0.0)
         pose = result.world_from_body
         if pose is None:
             return dataclasses.replace(result, map_generation=self._map_generation)
-        m = self._map_from_odom.get(result.segment_id)
+        m = np.eye(4)
+        if self._correction is not None:
+            anchored = self._correction.keyframe_map_from_odom.get(result.anchor_keyframe_id)
+            segment = self._correction.map_from_odom.get(result.segment_id)
+            m = anchored if anchored is not None else segment if segment is not None else m
+        jump = (0.0, 0.0)
+        if self._applied is not None and self._applied[0] == result.segment_id:
+            if m is not self._applied[1]:
+                jump = _jump(self._applied[1] @ pose, m @ pose)
+        self._applied = (result.segment_id, m)
         return dataclasses.replace(
             result,
-            map_from_body=pose.copy() if m is None else m @ pose,
+            map_from_body=m @ pose,
             map_generation=self._map_generation,
             map_jump_m=jump[0],
             map_jump_deg=jump[1],
-        )
-
-    def _map_jump(self, result: TrackingResult, old: dict[int, np.ndarray]) -> tuple[float, float]:
-        pose = result.world_from_body
-        if pose is None:
-            return 0.0, 0.0
-        eye = np.eye(4)
-        before = old.get(result.segment_id, eye) @ pose
-        after = self._map_from_odom.get(result.segment_id, eye) @ pose
-        delta = np.linalg.inv(before) @ after
-        return (
-            float(np.linalg.norm(after[:3, 3] - before[:3, 3])),
-            float(np.degrees(rotation_angle_rad(delta[:3, :3]))),
         )
 
     def finish_frontend(self) -> None:
@@ -90,3 +88,12 @@ class FrontendStage(Stage):
         self.frontend.finish()
         for correction in self.frontend.take_corrections():
             self.emit(correction)
+
+
+def _jump(before: np.ndarray, after: np.ndarray) -> tuple[float, float]:
+    """How far a pose moved: metres, degrees."""
+    delta = np.linalg.inv(before) @ after
+    return (
+        float(np.linalg.norm(after[:3, 3] - before[:3, 3])),
+        float(np.degrees(rotation_angle_rad(delta[:3, :3]))),
+    )

@@ -19,6 +19,7 @@ from datasets.sequence import Sequence
 from slam.config import SlamConfig, config_to_yaml
 from slam.core.latency import latency_summary
 from slam.core.trajectory import Trajectory
+from slam.frontend.tracker import FrontendStats
 from slam.runtime.control import RunControl
 from slam.runtime.end_of_run import (
     final_keyframe_poses,
@@ -143,6 +144,7 @@ class Run:
             "loop_closure": None if p.loop is None else p.loop.stats(),
             "mapping": None if p.mapper is None else p.mapper.stats(),
             "live_map_corrections": p.recorder.map_jump_summary(),
+            "map_reuse": map_reuse_summary(fe),
             "relocalisations": fe.relocalisations,
             "imu_bridged_losses": fe.imu_bridged,
             "track_refits": {"attempted": fe.track_refits, "kept": fe.track_refits_kept},
@@ -236,3 +238,23 @@ class Run:
             control.exit_code,
             live=p.recorder.live(),
         )
+
+
+def map_reuse_summary(fe: FrontendStats) -> dict[str, Any]:
+    """stats.json ``map_reuse``: the landmarks tracked again from the front end's map."""
+
+    def share(part: int, whole: int) -> float | None:
+        return part / whole if whole else None
+
+    return {
+        "searches": fe.map_searches,
+        "candidates": fe.map_candidates,
+        "found": fe.map_found,
+        "reobserved": fe.map_reobserved,
+        "rejected": fe.map_rejected,
+        "corrections": fe.map_corrections,
+        "correction_max_m": fe.map_correction_max_m,
+        "old_landmark_fraction": share(fe.landmarks_tracked_old, fe.landmarks_tracked),
+        "revisit_frames": fe.revisit_frames,
+        "old_landmark_fraction_on_revisits": share(fe.revisit_landmarks_old, fe.revisit_landmarks),
+    }

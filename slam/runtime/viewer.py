@@ -434,6 +434,9 @@ class RerunStage(Stage):
             colors = np.stack([255 * (1 - age), 255 * age, np.full_like(age, 60)], axis=1).astype(
                 np.uint8
             )
+            old = res.feature_reobserved
+            if old is not None and len(old) == len(colors):
+                colors[old] = (60, 140, 255)  # landmarks found again in the map: blue
             self.rec.log(
                 "world/body/cam0/image/features",
                 rr.Points2D(res.feature_pixels, colors=colors, radii=2.0),
