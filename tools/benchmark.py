@@ -181,6 +181,9 @@ def evaluate_run(seq_path: Path, run_dir: Path) -> dict[str, Any]:
     closed = run_dir / "trajectory_loop_closed.tum"
     if closed.exists():
         out["ate_loop_closed_m"] = ate_se3(seq_path, closed)
+    odometry = run_dir / "trajectory_odometry.tum"
+    if odometry.exists():
+        out["ate_odometry_m"] = ate_se3(seq_path, odometry)
     try:
         segs = segments_of(p_yaw, resolve_lengths("rpg", p_yaw.ref_poses))
         out["drift_pct"] = float(sum(s.stats["mean"] for s in segs) / len(segs))
@@ -247,6 +250,9 @@ def summarise(name: str, stats: dict[str, Any], acc: dict[str, Any]) -> dict[str
         "peak_rss_mb": stats.get("peak_rss_mb"),
         "end_of_run_s": stats.get("end_of_run_s"),
         "keyframes": stats.get("keyframes"),
+        "old_landmarks_on_revisits": (stats.get("map_reuse") or {}).get(
+            "old_landmark_fraction_on_revisits"
+        ),
     }
 
 
@@ -254,6 +260,7 @@ COLUMNS = (
     ("sequence", "sequence", "{}"),
     ("ate_se3_m", "ATE se3 (m)", "{:.4f}"),
     ("ate_posyaw_m", "ATE posyaw (m)", "{:.4f}"),
+    ("ate_odometry_m", "ATE odometry (m)", "{:.4f}"),
     ("ate_loop_closed_m", "ATE loop-closed (m)", "{:.4f}"),
     ("ate_loop_off_m", "ATE loop off (m)", "{:.4f}"),
     ("loop_ratio", "closed/off", "{:.2f}"),
@@ -263,6 +270,7 @@ COLUMNS = (
     ("completion_pct", "completion (%)", "{:.1f}"),
     ("loops_accepted", "loops", "{}"),
     ("false_loops", "false loops", "{}"),
+    ("old_landmarks_on_revisits", "old landmarks on revisits", "{:.2f}"),
     ("init_s", "init (s)", "{:.2f}"),
     ("real_time_factor", "RTF", "{:.2f}"),
     ("end_of_run_s", "end (s)", "{:.1f}"),
