@@ -34,7 +34,7 @@ them on the cluster's nodes. Outputs in --out DIR, rewritten (atomically) as run
                           trajectory), run.json (status, one-line error, numbers; written last)
   report.md, report.csv   per sequence x configuration: median (min-max) over the repeats of
                           ATE se3/posyaw, RPE, completion, real-time factor, latencies, memory
-  runs.csv, results.json  every run
+  runs.csv, runs.json     every run
   ate_boxplot.png         ATE per configuration per sequence, every repeat a dot
   trajectories.png        every run's trajectory over the ground truth (posyaw-aligned)
 A batch that was stopped (Ctrl-C, SIGTERM, killed) is resumed by running it again with the

@@ -79,7 +79,12 @@ def ate_boxplot(path: Path, tasks: list[BatchTask], records: dict[str, dict[str,
         ax.set_xticks(range(len(sequences)), sequences)
         ax.set_xlim(-0.6, len(sequences) - 0.4)
         ax.set_ylabel("ATE RMSE (m)")
-        ax.set_title(f"ATE over the repeats, {alignment}", fontsize=10)
+        repeats = max((len(v) for v in values.values()), default=0)
+        ax.set_title(
+            f"ATE RMSE per configuration, {alignment} (box: quartiles over up to "
+            f"{repeats} repeat{'s' if repeats != 1 else ''}, dots: runs)",
+            fontsize=10,
+        )
         ax.grid(alpha=0.3, axis="y")
         ax.set_ylim(bottom=0)
     axes[-1, 0].set_xlabel("sequence")

@@ -8,7 +8,7 @@ restarted batch skips it. Failed runs are run again.
 
 The report, rewritten (atomically) after every run: ``report.md`` and ``report.csv`` (per
 sequence x configuration: median and spread over the repeats, completion, real-time factor,
-latencies), ``runs.csv`` (every run), ``results.json`` (the spec and every run's record).
+latencies), ``runs.csv`` (every run), ``runs.json`` (the spec, every run's record, the groups).
 """
 
 from __future__ import annotations
@@ -232,5 +232,5 @@ def write_report(
     write_atomic(out_dir / "report.csv", summary_csv(rows))
     write_atomic(out_dir / "runs.csv", runs_csv(ordered))
     payload = {"spec": spec, "runs": ordered, "summary": rows}
-    write_atomic(out_dir / "results.json", json.dumps(payload, indent=1) + "\n")
+    write_atomic(out_dir / "runs.json", json.dumps(payload, indent=1) + "\n")
     return rows
