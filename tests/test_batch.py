@@ -105,7 +105,14 @@ def test_local_and_ray_engines_give_the_same_runs(tmp_path, seqs, monkeypatch):
     # Ray's local instance on the loopback interface only (its default is the machine's address)
     monkeypatch.setenv("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
     monkeypatch.setattr(ray_constants, "ENABLE_RAY_CLUSTER", False)
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, logging_level="ERROR")
+    ray.init(
+        address="local",  # a new instance, even when this machine has a cluster running
+        num_cpus=2,
+        object_store_memory=200 * 1024**2,  # a run's files are small; /dev/shm may be too
+        include_dashboard=False,
+        log_to_driver=False,
+        logging_level="ERROR",
+    )
     try:
         listening = {
             c.laddr.ip

@@ -98,7 +98,9 @@ class RayEngine:
                 first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
                 raise SlamError(
                     f"--address {address}: cannot join a Ray cluster ({first}); start one with "
-                    "`ray start --head` (see README: a two-node cluster)"
+                    "`ray start --head` (README: a two-node cluster; a cluster with token "
+                    "authentication, Ray's default, also needs RAY_AUTH_MODE=token with an "
+                    "explicit address)"
                 ) from None
             self._owned = True
 
@@ -121,7 +123,10 @@ class RayEngine:
                 ray.cancel(ref, force=True)
 
     def close(self) -> None:
-        """Disconnect (a cluster that was joined keeps running)."""
+        """Cancel what is still queued or running; disconnect (a joined cluster keeps running)."""
+        for ref in self._refs:
+            self._ray.cancel(ref, force=True)
+        self._refs = {}
         if self._owned:
             self._ray.shutdown()
             self._owned = False

@@ -88,7 +88,7 @@ def execute(
                         proc.kill()
                         proc.wait()
                     stopped = not late
-                    ok, error = False, (f"stopped after the timeout of {task.timeout_s:g} s")
+                    ok, error = False, f"stopped after the timeout of {task.timeout_s} s"
                     break
         wall_s = time.perf_counter() - t0
         if ok and proc.returncode != 0:
