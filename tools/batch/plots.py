@@ -81,8 +81,8 @@ def ate_boxplot(path: Path, tasks: list[BatchTask], records: dict[str, dict[str,
         ax.set_ylabel("ATE RMSE (m)")
         repeats = max((len(v) for v in values.values()), default=0)
         ax.set_title(
-            f"ATE RMSE per configuration, {alignment} (box: quartiles over up to "
-            f"{repeats} repeat{'s' if repeats != 1 else ''}, dots: runs)",
+            f"ATE RMSE, {alignment} (boxes: quartiles over {repeats} repeat"
+            f"{'s' if repeats != 1 else ''}; dots: runs)",
             fontsize=10,
         )
         ax.grid(alpha=0.3, axis="y")
