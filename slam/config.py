@@ -383,6 +383,13 @@ def load_config(spec: str | None, default_preset: str = "stereo-vo") -> SlamConf
         raise SlamError(f"{path}: not valid YAML: {exc}") from exc
     if not isinstance(data, dict):
         raise SlamError(f"{path}: expected a mapping of config keys")
+    return config_from_dict(data, default_preset)
+
+
+def config_from_dict(data: dict[str, Any], default_preset: str = "stereo-vo") -> SlamConfig:
+    """The configuration a YAML file's mapping describes: its ``preset:`` (else
+    ``default_preset``) with the other keys applied, checked against the bounds."""
+    data = dict(data)
     cfg: SlamConfig = _apply(preset_config(str(data.pop("preset", default_preset))), data, "")
     return validate_config(cfg)
 

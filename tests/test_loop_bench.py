@@ -1,4 +1,4 @@
-"""slam bench's loop-closure baseline: the loop-off config and the table columns."""
+"""slam bench's loop-closure baseline: the loop-off configuration and the table columns."""
 
 from __future__ import annotations
 
@@ -7,28 +7,39 @@ from pathlib import Path
 import yaml
 
 from slam.config import config_to_yaml, load_config, preset_config
-from tools.benchmark import STANDARD_SUITE, loop_off_config, markdown_table, quick_suite
+from tools.benchmark import STANDARD_SUITE, loop_off_choice, markdown_table, quick_suite
 
 
 def test_loop_off_config_keeps_everything_else(tmp_path: Path) -> None:
+    from tools.batch.spec import ConfigChoice, resolve_config
+
     cfg = preset_config("euroc-stereo-imu")
     cfg.loop.min_inliers = 41
-    run = tmp_path / "run"
-    run.mkdir()
-    (run / "config.yaml").write_text(config_to_yaml(cfg))
-    dest = loop_off_config(run, tmp_path / "off" / "cfg.yaml")
-    assert dest is not None
+    base_file = tmp_path / "base.yaml"
+    base_file.write_text(config_to_yaml(cfg))
+    choice = loop_off_choice(ConfigChoice("base", str(base_file)), "euroc-stereo-imu")
+    assert choice is not None
+    _, text = resolve_config(choice)
+    assert text is not None
+    dest = tmp_path / "off.yaml"
+    dest.write_text(text)
     off = load_config(str(dest))
     assert off.loop_closure is False
     assert off.use_imu is True and off.loop.min_inliers == 41
-    on = yaml.safe_load((run / "config.yaml").read_text())
+    on = yaml.safe_load(base_file.read_text())
     on["loop_closure"] = False
-    assert yaml.safe_load(dest.read_text()) == on
+    assert yaml.safe_load(text) == on
+    # slam run's own default (the sequence has an IMU): its loop closure turned off, only that
+    _, text = resolve_config(loop_off_choice(ConfigChoice("default"), "euroc-stereo-imu"))
+    assert yaml.safe_load(text) == {"loop_closure": False}
 
 
 def test_no_baseline_when_loop_closure_was_off(tmp_path: Path) -> None:
-    (tmp_path / "config.yaml").write_text(config_to_yaml(preset_config("stereo-vo")))
-    assert loop_off_config(tmp_path, tmp_path / "x.yaml") is None
+    from tools.batch.spec import ConfigChoice
+
+    (tmp_path / "vo.yaml").write_text(config_to_yaml(preset_config("stereo-vo")))
+    assert loop_off_choice(ConfigChoice("vo", str(tmp_path / "vo.yaml")), "stereo-vo") is None
+    assert loop_off_choice(ConfigChoice("stereo-vo", "stereo-vo"), "euroc-stereo-imu") is None
 
 
 def test_table_has_loop_columns_and_suite_flags() -> None:

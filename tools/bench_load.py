@@ -28,9 +28,9 @@ from pathlib import Path
 from typing import Any
 
 from slam.core.atomic import write_atomic
+from tools.batch.measure import ate_se3
 from tools.benchmark import (
     STANDARD_SUITE,
-    ate_se3,
     default_cache_dir,
     ensure_sequence,
     quick_suite,

@@ -1,16 +1,16 @@
-"""The project's benchmark: run the pipeline over a suite of sequences and tabulate the results.
+"""The project's benchmark: a batch (``tools/batch``) over the built-in suite, and its table.
 
 The standard suite is synthetic (exact ground truth, EuRoC-grade simulated IMU noise), generated
 once per definition and cached as MCAP files (deterministic: same definition, same bytes). Each
 run is a separate `slam run` process at ``--speed max`` without a viewer, so peak memory and
-timing belong to that run alone. Per run: ATE RMSE (se3 and posyaw), RPE at 1 m and 10 m,
-drift (% of distance over sub-trajectories of 10-50 % of the path, rpg style), completion (% of
-frames with a pose), initialisation time, real-time factor, front-end latency p50/p99, back-end
-update p50/p99, peak RSS.
+timing belong to that run alone, one at a time on the local engine by default. Per run (see
+``tools/batch/measure.py``): ATE RMSE (se3 and posyaw), RPE at 1 m and 10 m, drift, completion,
+initialisation time, real-time factor, front-end latency p50/p99, back-end update p50/p99, peak
+RSS. With repeats, the table shows each number's median over them.
 
 Loop closure: on suite sequences flagged ``revisits`` (they come back to places seen long
-before, after drift has accumulated), a second run of the same sequence with the same resolved
-configuration but ``loop_closure: false`` gives "the same run's ATE with loop closure off" and
+before, after drift has accumulated), a second configuration of the same sequence, the same
+configuration with ``loop_closure: false``, gives "the same run's ATE with loop closure off" and
 the ratio loop-closed / off. A separate run, not the online trajectory of the loop-closure run:
 that one is also changed by relocalisation against the map. ``--no-loop-baseline`` skips it.
 """
@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import os
+import statistics
 import subprocess
 import sys
 import time
@@ -26,10 +27,9 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from slam.core.errors import SlamError
-from slam.core.geometry import rotation_angle_rad
+from tools.batch.measure import COLUMNS, fmt
+from tools.batch.spec import BatchSpec, ConfigChoice, SequenceChoice
 
 SUITE_VERSION = 1
 
@@ -123,191 +123,105 @@ def run_one(
     return stats
 
 
-def loop_off_config(run_dir: Path, dest: Path) -> Path | None:
-    """A run's resolved config.yaml with ``loop_closure: false`` written to ``dest`` (None when
-    that run had loop closure off already)."""
-    import yaml
+LOOP_OFF = "loop-off"
 
-    from slam.core.atomic import write_atomic
 
-    data = yaml.safe_load((run_dir / "config.yaml").read_text()) or {}
-    if not data.get("loop_closure"):
+def loop_off_choice(base: ConfigChoice, default_preset: str) -> ConfigChoice | None:
+    """``base`` with loop closure off, for the baseline runs; None when ``base`` has loop
+    closure off already (``default_preset``: what slam run picks when ``base`` names none)."""
+    from slam.config import load_config
+
+    if not base.overrides.get("loop_closure", load_config(base.base, default_preset).loop_closure):
         return None
-    data["loop_closure"] = False
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(dest, yaml.safe_dump(data, sort_keys=False))
-    return dest
-
-
-def ate_se3(seq_path: Path, trajectory: Path) -> float | None:
-    """ATE RMSE (SE3 alignment) of one trajectory file or run folder against the sequence."""
-    from slam.evaluation.evaluate import EvalOptions, ape_of, load_pair, prepare
-
-    try:
-        ref, est = load_pair(seq_path, trajectory, EvalOptions())
-    except SlamError:
-        return None
-    return float(ape_of(prepare(ref, est, EvalOptions(align="se3"))).stats["rmse"])
-
-
-def evaluate_run(seq_path: Path, run_dir: Path) -> dict[str, Any]:
-    """Accuracy of a run against the sequence's ground truth (empty when it has none)."""
-    from slam.evaluation.evaluate import (
-        EvalOptions,
-        ape_of,
-        load_pair,
-        prepare,
-        resolve_lengths,
-        rpe_of,
-        segments_of,
-    )
-
-    try:
-        ref, est = load_pair(seq_path, run_dir, EvalOptions())
-    except SlamError as exc:
-        return {"eval_error": str(exc)}
-    out: dict[str, Any] = {}
-    p_se3 = prepare(ref, est, EvalOptions(align="se3"))
-    p_yaw = prepare(ref, est, EvalOptions(align="posyaw"))
-    out["ate_se3_m"] = ape_of(p_se3).stats["rmse"]
-    out["ate_posyaw_m"] = ape_of(p_yaw).stats["rmse"]
-    path_m = ref.trajectory.path_length_m() if hasattr(ref, "trajectory") else None
-    out["gt_path_m"] = path_m
-    for delta in (1.0, 10.0):
-        try:
-            out[f"rpe_{delta:g}m_m"] = rpe_of(p_se3, "trans", delta, "metres").stats["rmse"]
-        except Exception:  # path shorter than the delta
-            out[f"rpe_{delta:g}m_m"] = None
-    closed = run_dir / "trajectory_loop_closed.tum"
-    if closed.exists():
-        out["ate_loop_closed_m"] = ate_se3(seq_path, closed)
-    odometry = run_dir / "trajectory_odometry.tum"
-    if odometry.exists():
-        out["ate_odometry_m"] = ate_se3(seq_path, odometry)
-    try:
-        segs = segments_of(p_yaw, resolve_lengths("rpg", p_yaw.ref_poses))
-        out["drift_pct"] = float(sum(s.stats["mean"] for s in segs) / len(segs))
-    except Exception:
-        out["drift_pct"] = None
-    return out
-
-
-def false_loops(seq_path: Path, stats: dict[str, Any]) -> int | None:
-    """Accepted loops whose two keyframes were not at the same place by the ground truth.
-
-    Same place: body positions within 2 m and camera viewing directions within 45 degrees (a
-    verified loop needs shared structure in view). None without ground truth or loops.
-    """
-    loops = (stats.get("loop_closure") or {}).get("loops")
-    if not loops:
-        return 0 if loops is not None else None
-    from datasets.open import open_sequence
-    from slam.core.geometry import quat_wxyz_to_matrix
-
-    gt = open_sequence(seq_path).ground_truth
-    if gt is None or len(gt) == 0:
-        return None
-
-    def pose_at(t_ns: int) -> tuple[np.ndarray, np.ndarray]:
-        i = int(np.clip(np.searchsorted(gt.t_ns, t_ns), 0, len(gt) - 1))
-        return gt.positions_m[i], quat_wxyz_to_matrix(gt.q_wxyz[i])
-
-    false = 0
-    for loop in loops:
-        if loop.get("query_t_ns") is None or loop.get("match_t_ns") is None:
-            continue
-        pa, ra = pose_at(int(loop["query_t_ns"]))
-        pb, rb = pose_at(int(loop["match_t_ns"]))
-        # EuRoC-style body: the camera looks along body x/z; compare all axes' agreement
-        angle_deg = float(np.degrees(rotation_angle_rad(ra.T @ rb)))
-        if np.linalg.norm(pa - pb) > 2.0 or angle_deg > 45.0:
-            false += 1
-    return false
-
-
-def summarise(name: str, stats: dict[str, Any], acc: dict[str, Any]) -> dict[str, Any]:
-    be = stats.get("backend") or {}
-    fe = stats.get("latency", {}).get("frontend_frame", {})
-    frames_in = max(int(stats.get("frames_in", 0)), 1)
-    return {
-        "sequence": name,
-        **acc,
-        "completion_pct": 100.0 * stats.get("frames_tracked", 0) / frames_in,
-        "tracking_losses": stats.get("tracking_losses"),
-        "loops_accepted": (stats.get("loop_closure") or {}).get("accepted"),
-        "init_s": be.get("initialised_after_s"),
-        "real_time_factor": stats.get("real_time_factor"),
-        "frontend_p50_ms": fe.get("p50_ms"),
-        "frontend_p99_ms": fe.get("p99_ms"),
-        # of the p99 frame time, how much a frame's CPU work and its run-queue wait take (p99s)
-        "frontend_cpu_p99_ms": stats.get("latency", {}).get("frontend_frame_cpu", {}).get("p99_ms"),
-        "frontend_runqueue_p99_ms": (
-            stats.get("latency", {}).get("frontend_frame_runqueue", {}).get("p99_ms")
-        ),
-        "backend_p50_ms": (be.get("update") or {}).get("p50_ms"),
-        "backend_p99_ms": (be.get("update") or {}).get("p99_ms"),
-        "backend_resets": be.get("resets"),
-        "peak_rss_mb": stats.get("peak_rss_mb"),
-        "end_of_run_s": stats.get("end_of_run_s"),
-        "keyframes": stats.get("keyframes"),
-        "old_landmarks_on_revisits": (stats.get("map_reuse") or {}).get(
-            "old_landmark_fraction_on_revisits"
-        ),
-    }
-
-
-COLUMNS = (
-    ("sequence", "sequence", "{}"),
-    ("ate_se3_m", "ATE se3 (m)", "{:.4f}"),
-    ("ate_posyaw_m", "ATE posyaw (m)", "{:.4f}"),
-    ("ate_odometry_m", "ATE odometry (m)", "{:.4f}"),
-    ("ate_loop_closed_m", "ATE loop-closed (m)", "{:.4f}"),
-    ("ate_loop_off_m", "ATE loop off (m)", "{:.4f}"),
-    ("loop_ratio", "closed/off", "{:.2f}"),
-    ("rpe_1m_m", "RPE 1 m (m)", "{:.4f}"),
-    ("rpe_10m_m", "RPE 10 m (m)", "{:.4f}"),
-    ("drift_pct", "drift (%)", "{:.3f}"),
-    ("completion_pct", "completion (%)", "{:.1f}"),
-    ("loops_accepted", "loops", "{}"),
-    ("false_loops", "false loops", "{}"),
-    ("old_landmarks_on_revisits", "old landmarks on revisits", "{:.2f}"),
-    ("init_s", "init (s)", "{:.2f}"),
-    ("real_time_factor", "RTF", "{:.2f}"),
-    ("end_of_run_s", "end (s)", "{:.1f}"),
-    ("frontend_p50_ms", "FE p50 (ms)", "{:.1f}"),
-    ("frontend_p99_ms", "FE p99 (ms)", "{:.1f}"),
-    ("backend_p50_ms", "BE p50 (ms)", "{:.1f}"),
-    ("backend_p99_ms", "BE p99 (ms)", "{:.1f}"),
-    ("peak_rss_mb", "peak memory (MB)", "{:.0f}"),
-)
-
-
-def _fmt(value: Any, fmt: str) -> str:
-    if value is None:
-        return "-"
-    try:
-        return fmt.format(value)
-    except (ValueError, TypeError):
-        return str(value)
+    return ConfigChoice(LOOP_OFF, base.base, {**base.overrides, "loop_closure": False})
 
 
 def markdown_table(rows: list[dict[str, Any]], old: dict[str, dict[str, Any]] | None = None) -> str:
-    """One row per run; with ``old`` (by sequence), each number also shows its change."""
+    """One row per sequence; with ``old`` (by sequence), each number also shows its change."""
     head = "| " + " | ".join(title for _, title, _ in COLUMNS) + " |"
     sep = "|" + "|".join("---" for _ in COLUMNS) + "|"
     lines = [head, sep]
     for row in rows:
         cells = []
         prev = (old or {}).get(row["sequence"])
-        for key, _, fmt in COLUMNS:
-            cell = _fmt(row.get(key), fmt)
+        for key, _, spec in COLUMNS:
+            cell = fmt(row.get(key), spec)
             if prev is not None and key != "sequence":
                 a, b = row.get(key), prev.get(key)
                 if isinstance(a, (int, float)) and isinstance(b, (int, float)):
-                    cell += f" ({'+' if a - b >= 0 else ''}{_fmt(a - b, fmt)})"
+                    cell += f" ({'+' if a - b >= 0 else ''}{fmt(a - b, spec)})"
             cells.append(cell)
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+def bench_spec(
+    sequences: list[Path],
+    suite: tuple[SuiteEntry, ...] | None,
+    cache_dir: Path,
+    preset: str | None = None,
+    extra_args: list[str] | None = None,
+    loop_baseline: bool = True,
+    repeats: int = 1,
+) -> BatchSpec:
+    """The batch of a benchmark: every sequence with ``preset``, and the suite's revisiting
+    sequences also with loop closure off."""
+    base = ConfigChoice(preset or "default", preset)
+    loop_off = loop_off_choice(base, "euroc-stereo-imu") if loop_baseline else None
+    seqs = []
+    for entry in suite or ():
+        path = ensure_sequence(entry, cache_dir)
+        both = entry.revisits and loop_off is not None
+        seqs.append(
+            SequenceChoice(path, entry.name, (base.name, LOOP_OFF) if both else (base.name,))
+        )
+    for path in sequences:
+        if not path.exists():
+            raise SlamError(f"{path}: no such sequence")
+        seqs.append(SequenceChoice(path, path.stem if path.is_file() else path.name, (base.name,)))
+    return BatchSpec(
+        seqs,
+        [base] + ([loop_off] if loop_off is not None else []),
+        repeats=repeats,
+        speed="max",
+        run_args=list(extra_args or []),
+    )
+
+
+def _median(values: list[Any]) -> Any:
+    numbers = [v for v in values if isinstance(v, (int, float)) and not isinstance(v, bool)]
+    if not numbers:
+        return None
+    m = statistics.median(numbers)
+    return int(m) if all(isinstance(v, int) for v in numbers) and m == int(m) else m
+
+
+def bench_rows(records: list[dict[str, Any]], base_config: str) -> list[dict[str, Any]]:
+    """One row per sequence: the median of every number over the repeats of the base
+    configuration, with the loop-off runs' ATE and the ratio loop-closed / off."""
+    by_seq: dict[str, dict[str, list[dict[str, Any]]]] = {}
+    for r in records:
+        if r.get("status") == "ok":
+            by_seq.setdefault(r["sequence"], {}).setdefault(r["config"], []).append(r["metrics"])
+    rows = []
+    for seq in dict.fromkeys(r["sequence"] for r in records):
+        runs = by_seq.get(seq, {})
+        base = runs.get(base_config, [])
+        keys = dict.fromkeys(k for m in base for k in m)
+        row: dict[str, Any] = {"sequence": seq, "repeats": len(base)}
+        for key in keys:
+            if key != "sequence":
+                row[key] = _median([m.get(key) for m in base])
+        if base and "eval_error" in keys:
+            row["eval_error"] = base[0].get("eval_error")
+        off = runs.get(LOOP_OFF)
+        if off:
+            row["ate_loop_off_m"] = _median([m.get("ate_se3_m") for m in off])
+            closed, off_m = row.get("ate_loop_closed_m"), row["ate_loop_off_m"]
+            if closed is not None and off_m:
+                row["loop_ratio"] = closed / off_m
+        rows.append(row)
+    return rows
 
 
 def run_benchmark(
@@ -319,60 +233,54 @@ def run_benchmark(
     extra_args: list[str] | None = None,
     compare: Path | None = None,
     loop_baseline: bool = True,
-) -> tuple[list[dict[str, Any]], str]:
-    """Run everything, write ``results.json`` and ``results.md`` to ``out_dir``."""
+    repeats: int = 1,
+    engine: str = "local",
+    address: str = "auto",
+    progress: bool = True,
+) -> tuple[list[dict[str, Any]], str, int]:
+    """Run the benchmark's batch in ``out_dir`` (resumable), write ``results.json`` and
+    ``results.md`` (the table) beside the batch's report; returns the rows, the table and how
+    many runs failed."""
     from slam.core.atomic import write_atomic
+    from tools.batch.runner import run_batch
 
-    out_dir.mkdir(parents=True, exist_ok=True)
-    todo: list[tuple[str, Path, bool]] = []
-    for entry in suite or ():
-        todo.append((entry.name, ensure_sequence(entry, cache_dir), entry.revisits))
-    for path in sequences:
-        if not path.exists():
-            raise SlamError(f"{path}: no such sequence")
-        todo.append((path.stem if path.is_file() else path.name, path, False))
-    rows = []
-    for name, path, revisits in todo:
-        run_dir = out_dir / "runs" / name
-        print(f"running {name} ...", flush=True)
-        stats = run_one(path, run_dir, preset, extra_args or [])
-        acc = evaluate_run(path, run_dir)
-        acc["false_loops"] = false_loops(path, stats)
-        if loop_baseline and revisits:
-            off_cfg = loop_off_config(run_dir, out_dir / "runs" / f"{name}-loop-off.yaml")
-            if off_cfg is not None:
-                print(f"running {name} with loop closure off ...", flush=True)
-                off_dir = out_dir / "runs" / f"{name}-loop-off"
-                off_args = [a for a in (extra_args or [])]
-                run_one(path, off_dir, str(off_cfg), off_args)
-                acc["ate_loop_off_m"] = ate_se3(path, off_dir)
-                closed_m, off_m = acc.get("ate_loop_closed_m"), acc["ate_loop_off_m"]
-                if closed_m is not None and off_m:
-                    acc["loop_ratio"] = closed_m / off_m
-        row = summarise(name, stats, acc)
-        write_atomic(run_dir / "bench.json", json.dumps(row, indent=2) + "\n")
-        rows.append(row)
-        print(
-            f"  ATE se3 {_fmt(row.get('ate_se3_m'), '{:.4f}')} m, "
-            f"RTF {_fmt(row['real_time_factor'], '{:.2f}')}, "
-            f"FE p99 {_fmt(row['frontend_p99_ms'], '{:.1f}')} ms"
-            + (
-                f", loop-closed / off {_fmt(row.get('ate_loop_closed_m'), '{:.4f}')} / "
-                f"{_fmt(row.get('ate_loop_off_m'), '{:.4f}')} m"
-                if row.get("ate_loop_off_m") is not None
-                else ""
-            ),
-            flush=True,
-        )
     old = None
-    if compare is not None:
+    if compare is not None:  # checked before hours of runs, not after
         try:
             old_rows = json.loads(Path(compare).read_text())["runs"]
-        except (OSError, ValueError, KeyError) as exc:
+            old = {r["sequence"]: r for r in old_rows}
+        except (OSError, ValueError, KeyError, TypeError) as exc:
             raise SlamError(
                 f"--compare {compare}: not a results.json from slam bench ({exc})"
             ) from None
-        old = {r["sequence"]: r for r in old_rows}
+    spec = bench_spec(sequences, suite, cache_dir, preset, extra_args, loop_baseline, repeats)
+
+    def line(record: dict[str, Any]) -> None:
+        m = record.get("metrics") or {}
+        what = f"{record['run_id']}: "
+        if record["status"] != "ok":
+            print(what + f"FAILED: {record.get('error')}", flush=True)
+            return
+        print(
+            what + f"ATE se3 {fmt(m.get('ate_se3_m'), '{:.4f}')} m, "
+            f"RTF {fmt(m.get('real_time_factor'), '{:.2f}')}, "
+            f"FE p99 {fmt(m.get('frontend_p99_ms'), '{:.1f}')} ms",
+            flush=True,
+        )
+
+    result = run_batch(
+        spec,
+        out_dir,
+        engine=engine,
+        address=address,
+        progress=progress,
+        title="slam bench",
+        on_record=line,
+    )
+    from tools.batch.report import read_record
+
+    records = [r for t in result.tasks if (r := read_record(out_dir, t)) is not None]
+    rows = bench_rows(records, spec.configs[0].name)
     table = markdown_table(rows, old)
     meta = {
         "suite_version": SUITE_VERSION,
@@ -380,9 +288,11 @@ def run_benchmark(
         "preset": preset,
         "extra_args": extra_args or [],
         "loop_baseline": loop_baseline,
+        "repeats": repeats,
+        "failed_runs": [f"{r['run_id']}: {r.get('error')}" for r in records if r["status"] != "ok"],
         "date": time.strftime("%Y-%m-%d %H:%M:%S"),
         "runs": rows,
     }
     write_atomic(out_dir / "results.json", json.dumps(meta, indent=2) + "\n")
     write_atomic(out_dir / "results.md", table)
-    return rows, table
+    return rows, table, result.failed

@@ -25,6 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("tools.cmd_run", "track a sequence; trajectory, keyframes, stats, live rerun view"),
     "config": ("tools.cmd_config", "every configuration key with its default, unit and doc"),
     "eval": ("tools.cmd_eval", "trajectory error (APE, RPE, drift) against ground truth"),
+    "batch": ("tools.cmd_batch", "many runs (sequences x configs x repeats), locally or on Ray"),
     "bench": ("tools.cmd_bench", "run the benchmark suite and tabulate accuracy and speed"),
     "fuse": ("tools.cmd_fuse", "dense mesh by TSDF fusion (RGB-D folder, or sequence + poses)"),
     "vocab": ("tools.cmd_vocab", "train or inspect a bag-of-words vocabulary"),

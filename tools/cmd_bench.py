@@ -11,11 +11,15 @@ examples:
   slam bench --out bench_out --quick 20           # every suite sequence cut to 20 s
   slam bench --out b2 --no-suite ~/data/V1_01_easy --config euroc-stereo-imu
   slam bench --out b3 --compare bench_out/results.json   # show the change since then
+  slam bench --out b4 --repeats 3                 # medians over 3 runs of each
 
 The standard suite (generated once, cached in --cache-dir, deterministic):
   room-figure8 60 s, room-loop 80 s, room-aggressive 60 s (room-scale), hall 140 s (hall-scale),
   stereo 752x480 @ 20 Hz, IMU 200 Hz with EuRoC ADIS16448 noise.
-Every run is `slam run SEQ --speed max` in its own process, without a viewer.
+Every run is `slam run SEQ --speed max` in its own process, without a viewer: a `slam batch`
+(see its --help) over the suite, so a stopped benchmark resumes with the same --out, a failed
+run is recorded and the others go on, and --repeats N gives medians (and the spread in
+report.md, box plots in ate_boxplot.png).
 Every suite sequence revisits earlier places: when loop closure is on, it is run a second time
 with loop closure off (same configuration otherwise), for the columns "ATE loop off" and
 "closed/off" (loop-closed ATE / ATE with loop closure off); --no-loop-baseline skips that.
@@ -61,6 +65,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="do not re-run revisiting sequences with loop closure off (halves the time)",
     )
     p.add_argument(
+        "--repeats",
+        type=int,
+        default=1,
+        help="runs of every sequence (the table shows medians; report.md the spread)",
+    )
+    p.add_argument("--engine", choices=("local", "ray"), default="local", help="as slam batch")
+    p.add_argument("--address", default="auto", help="--engine ray: as slam batch")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
         "--run-arg",
         action="append",
         default=[],
@@ -74,7 +87,7 @@ def handle(args: argparse.Namespace) -> int:
     from tools.benchmark import STANDARD_SUITE, default_cache_dir, quick_suite, run_benchmark
 
     suite = None if args.no_suite else (quick_suite(args.quick) if args.quick else STANDARD_SUITE)
-    _, table = run_benchmark(
+    _, table, failed = run_benchmark(
         args.out,
         list(args.sequences),
         suite,
@@ -83,8 +96,15 @@ def handle(args: argparse.Namespace) -> int:
         extra_args=list(args.run_arg),
         compare=args.compare,
         loop_baseline=not args.no_loop_baseline,
+        repeats=args.repeats,
+        engine=args.engine,
+        address=args.address,
+        progress=not args.no_progress,
     )
     print()
     print(table)
-    print(f"results in {args.out}/results.md and {args.out}/results.json")
-    return 0
+    print(
+        f"results in {args.out}/results.md and {args.out}/results.json; per run and with the "
+        f"spread over repeats: {args.out}/report.md, runs.csv, ate_boxplot.png, trajectories.png"
+    )
+    return 1 if failed else 0

@@ -380,3 +380,38 @@ class ReaderEnd:
     """The reader process reached the end of the sequence."""
 
     warnings: tuple[str, ...]
+
+
+# -- `slam batch` (tools/batch): a run sent to an engine's worker, and what comes back --------
+@dataclass(frozen=True)
+class BatchTask:
+    """One `slam run` of a batch, as an engine's worker (a local thread, a Ray task) gets it.
+
+    Everything the worker needs travels here: the configuration as YAML text (the worker may be
+    on another machine, without the batch's folder), the sequence path as the worker sees it.
+    """
+
+    run_id: str  # "sequence/configuration/repN": also the run's folder under OUT/runs
+    sequence: str  # the sequence's name in tables
+    sequence_path: str  # where the worker reads it
+    config: str  # the configuration's name in tables
+    config_arg: str | None  # a preset name for `slam run --config`, or None
+    config_yaml: str | None  # YAML text passed as a file to `--config` (overrides), or None
+    repeat: int  # 1..N
+    run_args: tuple[str, ...]  # `--speed max`, `--sequential`, extra `slam run` arguments
+    timeout_s: float | None = None  # a run still going after this long is stopped and failed
+    fingerprint: str = ""  # of what makes the run's result (a finished run is reused if equal)
+
+
+@dataclass(frozen=True, eq=False)
+class BatchOutcome:
+    """A finished (or failed) batch run: its output files and its measurements."""
+
+    run_id: str
+    ok: bool
+    error: str | None  # one line, when not ok
+    files: dict[str, bytes]  # the run's folder, relative path -> content
+    metrics: dict[str, Any]  # accuracy against ground truth and the run's stats (summarised)
+    process_wall_s: float  # the `slam run` process, start to exit
+    host: str  # the machine that ran it
+    stopped: bool = False  # ended by the batch being stopped: not a result, run again later

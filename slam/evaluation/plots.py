@@ -43,7 +43,8 @@ def plt_viridis_mid() -> Any:
     return matplotlib.colormaps["viridis"](0.5)
 
 
-def _pyplot() -> Any:
+def pyplot() -> Any:
+    """matplotlib.pyplot on the Agg backend (headless; files only)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -133,7 +134,7 @@ def _over_time(ax: Any, result: EvalResult, label: str | None = None) -> None:
 
 def save_plots(path: str | Path, results: list[EvalResult], prepared: Any) -> list[Path]:
     """Write one figure for ``results`` (all of one kind) to ``path``; returns the files written."""
-    plt = _pyplot()
+    plt = pyplot()
     out = Path(path)
     fig = figure(results, prepared)
     fig.savefig(out, dpi=110)
@@ -143,7 +144,7 @@ def save_plots(path: str | Path, results: list[EvalResult], prepared: Any) -> li
 
 def figure(results: list[EvalResult], prepared: Any) -> Any:
     """The matplotlib figure of ``results`` (all of one kind); the caller closes it."""
-    plt = _pyplot()
+    plt = pyplot()
     kind = results[0].kind
     if kind == "ape":
         r = results[0]
