@@ -17,7 +17,9 @@ from slam.frontend.tracker import FrontEnd
 from slam.runtime.frontend import FrontendStage
 
 
-def _result(t_ns: int, pose: np.ndarray | None, segment: int = 0) -> TrackingResult:
+def _result(
+    t_ns: int, pose: np.ndarray | None, segment: int = 0, anchor: int = -1
+) -> TrackingResult:
     return TrackingResult(
         t_ns=t_ns,
         frame_index=t_ns,
@@ -31,6 +33,7 @@ def _result(t_ns: int, pose: np.ndarray | None, segment: int = 0) -> TrackingRes
         feature_pixels=np.zeros((0, 2)),
         feature_ages=np.zeros(0),
         latency_ms=1.0,
+        anchor_keyframe_id=anchor,
     )
 
 
@@ -57,6 +60,10 @@ def test_published_pose_is_odometry_under_the_latest_correction() -> None:
     third = stage._in_map(_result(3, odo))  # the same correction: no new jump
     np.testing.assert_allclose(third.map_from_body, fix @ odo)
     assert third.map_jump_m == 0.0
+    # tracked on old landmarks found again in the map: already in the map, published as is
+    anchored = stage._in_map(_result(3, odo, anchor=3))
+    np.testing.assert_array_equal(anchored.map_from_body, odo)
+    assert abs(anchored.map_jump_m - expected_m) < 1e-12  # leaving the correction is a jump
     other = stage._in_map(_result(4, odo, segment=1))  # a segment it does not correct
     np.testing.assert_array_equal(other.map_from_body, odo)
     lost = stage._in_map(_result(5, None))
@@ -74,6 +81,9 @@ def test_run_writes_live_and_odometry_trajectories(tmp_path) -> None:
 
     seq = open_sequence(synth_mcap(tmp_path / "seq.mcap", "figure8", 36))
     cfg = dataclasses.replace(preset_config("euroc-stereo-imu"))
+    # without map reuse, so that every frame after a loop is corrected (a frame tracked on
+    # old landmarks is published as tracked)
+    cfg.frontend.map_reuse = False
     cfg.player.sequential = True
     cfg.player.speed = 0.0
     res = run_slam(seq, cfg, tmp_path / "run", progress=False)

@@ -221,9 +221,6 @@ class LoopCorrection:
     map_generation: int  # increments with every correction
     map_from_odom: dict[int, np.ndarray]
     corrected_keyframe_poses: dict[int, np.ndarray]
-    keyframe_map_from_odom: dict[int, np.ndarray] = field(default_factory=dict)
-    """keyframe id -> its corrected pose @ inverse(its odometry pose): the correction of what
-    was tracked relative to that keyframe's landmarks."""
 
 
 @dataclass(frozen=True, eq=False)

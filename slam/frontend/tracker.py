@@ -697,15 +697,6 @@ class FrontEnd:
             return
         inl = old_inl
         self.stats.map_corrections += 1
-        import os
-
-        if os.environ.get("MAPDBG"):
-            self.stats.state_log.append(
-                (
-                    frame.t_ns,
-                    f"MAPDBG snap {moved_m * 100:.2f} cm {np.degrees(rotation_angle_rad(correction[:3, :3])):.2f} deg cand {found.candidates} found {len(found.ids)} inl {len(inl)}",
-                )
-            )
         self.stats.map_correction_max_m = max(self.stats.map_correction_max_m, moved_m)
         self.corrections.append(FrontendCorrection(frame.t_ns, correction, False))
         self._move_world(correction)
