@@ -15,7 +15,9 @@ Per keyframe (:meth:`DenseMapper.add_keyframe`):
 
 Loop correction (:meth:`DenseMapper.update_poses`): keyframes whose pose moved by more than a
 threshold are **re-integrated**: de-integrated with the old pose, then integrated with the new
-one (exact for the TSDF and weights because weights are not clamped; colours are approximate).
+one (exact for the TSDF and weights because weights are not clamped; colours too with
+``keep_color``, else re-integration moves geometry only and voxels keep the colour fused
+before: the volume's colour has its own weight, so geometry-only updates never dilute it).
 """
 
 from __future__ import annotations
