@@ -320,6 +320,7 @@ class MapKeyframe:
     image_left: np.ndarray
     image_right: np.ndarray | None
     world_from_cam0: np.ndarray  # (4, 4)
+    landmark_depth_range_m: tuple[float, float] | None = None  # its tracked landmarks' depths
 
 
 @dataclass(frozen=True, eq=False)

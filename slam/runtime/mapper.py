@@ -54,8 +54,24 @@ def _make_mapper(calib: Calibration, cfg: MapperStageConfig) -> Any:
             threads=cfg.sweep_threads,
         ),
         depth_scale=cfg.depth_scale,
+        depth_method=cfg.depth_method,
     )
     return DenseMapper.from_calibration(calib, config)
+
+
+def _landmark_depth_range(kf: Keyframe, world_from_cam0: np.ndarray) -> tuple[float, float] | None:
+    """(2nd, 98th) percentile depth (m) in cam0 of the keyframe's tracked landmarks; None with
+    fewer than 20 in front of the camera."""
+    pts = np.asarray(kf.points_world_vo, float)
+    if len(pts) == 0:
+        return None
+    cam0_from_world = np.linalg.inv(world_from_cam0)
+    z = pts @ cam0_from_world[2, :3] + cam0_from_world[2, 3]
+    z = z[np.isfinite(z) & (z > 0.05)]
+    if len(z) < 20:
+        return None
+    lo, hi = np.percentile(z, [2, 98])
+    return float(lo), float(hi)
 
 
 def _snapshot(mapper: Any, t_ns: int) -> MeshSnapshot | None:
@@ -67,7 +83,13 @@ def _snapshot(mapper: Any, t_ns: int) -> MeshSnapshot | None:
 
 
 def _add(mapper: Any, item: MapKeyframe) -> MapperReport:
-    r = mapper.add_keyframe(item.t_ns, item.image_left, item.image_right, item.world_from_cam0)
+    r = mapper.add_keyframe(
+        item.t_ns,
+        item.image_left,
+        item.image_right,
+        item.world_from_cam0,
+        landmark_depth_range_m=item.landmark_depth_range_m,
+    )
     return MapperReport(r.t_ns, r.skipped, r.depth_ms, r.fusion_ms, r.blocks)
 
 
@@ -194,7 +216,9 @@ class MapperStage(ProcessStage):
         if not isinstance(msg, Keyframe):
             return
         pose = msg.world_from_body_vo @ self.body_from_cam0
-        item = MapKeyframe(msg.t_ns, msg.image_left, msg.image_right, pose)
+        item = MapKeyframe(
+            msg.t_ns, msg.image_left, msg.image_right, pose, _landmark_depth_range(msg, pose)
+        )
         with self._lock:
             self.received += 1
             self.newest_t_ns = max(self.newest_t_ns, msg.t_ns)
