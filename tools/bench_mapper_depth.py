@@ -36,7 +36,6 @@ from mapping.mapper import DenseMapper, MapperConfig
 from mapping.planesweep import SweepConfig, Undistorter
 from mapping.stereo_sgbm import SgbmConfig
 from mapping.tsdf import TsdfConfig
-from slam.core.geometry import invert_transform
 
 
 def methods() -> dict[str, MapperConfig]:
