@@ -34,7 +34,7 @@ class MapperStageConfig:
     num_planes: int = bounded(96, ge=2)
     """Plane-sweep depth hypotheses (inverse-depth sampled; ``depth_method: sweep``)."""
     sweep_threads: int = bounded(2, ge=1)
-    """Plane-sweep threads in the worker (a background process: SCHED_IDLE, see
+    """Depth threads in the worker (plane sweep strips; SGBM: OpenCV's pool) (a background process: SCHED_IDLE, see
     ``player.idle_workers``, so it yields to tracking)."""
     max_backlog: int = bounded(4, ge=1)
     """Keyframes waiting for the mapper; beyond that a keyframe is dropped (and counted)."""

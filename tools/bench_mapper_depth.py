@@ -7,7 +7,10 @@ and fuses it (2 cm voxels, as ``slam run --mesh``):
 - ``sweep_full`` / ``sweep_half``: plane sweep over the stereo partner and the previous keyframe
   (96 planes, at full / half size);
 - ``sgbm_full`` / ``sgbm_half``: OpenCV StereoSGBM on the rectified pair (3-way mode);
-- ``sgbm_full_8path``: the same with the 5-path mode (``sgbm``).
+- ``sgbm_full_nocheck``: without the check against the previous keyframe's depth;
+- ``sgbm_full_8path``: the 5-path mode (``sgbm``).
+
+``--only NAME...`` runs some of them.
 
 Per method: depth + fusion ms per keyframe (median, p90; wall and CPU), the depth map's error
 against the exact depth (median and p90 relative error, share of the image with depth), and the
@@ -48,6 +51,9 @@ def methods() -> dict[str, MapperConfig]:
         "sweep_half": replace(base, depth_method="sweep", depth_scale=0.5),
         "sgbm_full": replace(base, depth_method="sgbm", depth_scale=1.0),
         "sgbm_half": replace(base, depth_method="sgbm", depth_scale=0.5),
+        "sgbm_full_nocheck": replace(
+            base, depth_method="sgbm", depth_scale=1.0, consistency_rel_tol=0.0
+        ),
         "sgbm_full_8path": replace(
             base, depth_method="sgbm", depth_scale=1.0, sgbm=SgbmConfig(mode="sgbm")
         ),
@@ -76,7 +82,9 @@ def depth_errors(
     return np.abs(q[2][ok][good] - t[good]) / t[good]
 
 
-def run(profile: str, duration_s: float, kf_every: int, seed: int) -> dict[str, Any]:
+def run(
+    profile: str, duration_s: float, kf_every: int, seed: int, only: list[str] | None = None
+) -> dict[str, Any]:
     from datasets.synth import make_synthetic_sequence
     from tools.bench_mapping import mesh_quality, visible_samples
 
@@ -84,7 +92,11 @@ def run(profile: str, duration_s: float, kf_every: int, seed: int) -> dict[str, 
     calib = seq.calibration
     und0 = Undistorter(calib.cameras[0].intrinsics)
     cv2.setNumThreads(1)  # as the mapper worker (slam/runtime/mapper.py)
-    mappers = {name: DenseMapper.from_calibration(calib, cfg) for name, cfg in methods().items()}
+    mappers = {
+        name: DenseMapper.from_calibration(calib, cfg)
+        for name, cfg in methods().items()
+        if not only or name in only
+    }
     per: dict[str, dict[str, list[float]]] = {
         n: {"wall_ms": [], "cpu_ms": [], "err": [], "valid": []} for n in mappers
     }
@@ -142,9 +154,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=30.0, help="seconds (30)")
     ap.add_argument("--kf-every", type=int, default=10, help="frames between keyframes (10)")
     ap.add_argument("--seed", type=int, default=1, help="sequence seed (1, as the suite)")
+    ap.add_argument("--only", nargs="*", help="method names (all)")
     ap.add_argument("--json", type=Path, help="write the figures here too")
     args = ap.parse_args(argv)
-    out = run(args.profile, args.duration, args.kf_every, args.seed)
+    out = run(args.profile, args.duration, args.kf_every, args.seed, args.only)
     text = json.dumps(out, indent=2)
     print(text)
     if args.json:

@@ -116,8 +116,13 @@ def _finish(mapper: Any, request: MapFinish) -> tuple[MapperSummary, MeshSnapsho
 class MapperCore(WorkerCore):
     """The dense mapper behind the stage: fuses keyframes, reports, snapshots meshes."""
 
-    def __init__(self, calib: Calibration, cfg: MapperStageConfig):
-        if cfg.sweep_threads > 1:
+    def __init__(self, calib: Calibration, cfg: MapperStageConfig, live_mesh: bool = True):
+        """``live_mesh``: send periodic mesh snapshots (only worth it when a viewer shows them:
+        marching cubes over the whole map holds up the keyframes behind it)."""
+        self.live_mesh = live_mesh
+        if cfg.depth_method == "sgbm":
+            cv2.setNumThreads(cfg.sweep_threads)  # StereoSGBM's rows in OpenCV's pool
+        elif cfg.sweep_threads > 1:
             # The sweep's own threads take whole strips; OpenCV's pool inside each call on top
             # of them only adds dispatch overhead (752x480, 64 planes, 2 views: 282-294 ->
             # 270-276 ms).
@@ -129,7 +134,7 @@ class MapperCore(WorkerCore):
     def handle(self, msg: Any) -> list[Any]:
         if isinstance(msg, MapKeyframe):
             out: list[Any] = [_add(self.mapper, msg)]
-            if time.perf_counter() - self.last_mesh > self.cfg.mesh_every_s:
+            if self.live_mesh and time.perf_counter() - self.last_mesh > self.cfg.mesh_every_s:
                 snap = _snapshot(self.mapper, msg.t_ns)
                 if snap is not None:
                     out.append(snap)
@@ -141,8 +146,8 @@ class MapperCore(WorkerCore):
         return []
 
 
-def _make_core(calib: Calibration, cfg: MapperStageConfig) -> MapperCore:
-    return MapperCore(calib, cfg)
+def _make_core(calib: Calibration, cfg: MapperStageConfig, live_mesh: bool) -> MapperCore:
+    return MapperCore(calib, cfg, live_mesh)
 
 
 class MapperStage(ProcessStage):
@@ -156,14 +161,16 @@ class MapperStage(ProcessStage):
         cfg: MapperStageConfig,
         threaded: bool,
         idle_worker: bool = False,
+        live_mesh: bool = True,
     ):
-        """``idle_worker``: run the worker process under SCHED_IDLE (``slam.runtime.priority``)."""
+        """``idle_worker``: run the worker process under SCHED_IDLE (``slam.runtime.priority``);
+        ``live_mesh``: snapshots for a viewer (see :class:`MapperCore`)."""
         super().__init__(
             "mapper",
             256,
             threaded,
             _make_core,
-            (calib, cfg),
+            (calib, cfg, live_mesh),
             role="mapper",
             idle=idle_worker,
         )
