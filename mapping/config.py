@@ -40,6 +40,9 @@ class MapperStageConfig:
     """Keyframes waiting for the mapper; beyond that a keyframe is dropped (and counted)."""
     mesh_every_s: float = bounded(5.0, ge=0)
     """Send a mesh snapshot to the viewer at most this often (marching cubes is not free)."""
+    reintegrate_per_keyframe: int = bounded(2, ge=0, unit="keyframes")
+    """During the run, after each keyframe re-integrate at most this many keyframes that a loop
+    correction moved (spread out so the mapper keeps up); 0: only at the end."""
     final_reintegration: bool = True
     """At the end, re-integrate keyframes whose final (optimised, loop-closed) pose moved."""
 

@@ -10,6 +10,11 @@ p50/p90/p99/max), and receives per-keyframe reports and
 periodic mesh snapshots (for rerun). At the end, keyframe poses are replaced by the final
 (back-end optimised, loop-closed) ones: the mapper **re-integrates** the keyframes that moved
 (de-integrate with the old pose, integrate with the new), then writes ``mesh.ply``.
+
+During the run, loop corrections move the map too: new keyframes arrive at their pose in the
+corrected map (``map_from_odom`` of their segment), and the keyframes a correction moved are
+sent as a :class:`MapPoseUpdate`; the core re-integrates ``reintegrate_per_keyframe`` of them
+after each keyframe, so the live mesh follows the loop closure without stalling the mapper.
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from slam.core.messages import (
     MapKeyframe,
     MapperReport,
     MapperSummary,
+    MapPoseUpdate,
     MeshSnapshot,
 )
 from slam.runtime.worker import ProcessStage, WorkerCore
@@ -82,7 +88,11 @@ def _snapshot(mapper: Any, t_ns: int) -> MeshSnapshot | None:
     return MeshSnapshot(t_ns, mesh.vertices_m, mesh.faces, mesh.normals, mesh.colors_rgb)
 
 
-def _add(mapper: Any, item: MapKeyframe) -> MapperReport:
+def _add(
+    mapper: Any, item: MapKeyframe, pending: dict[int, np.ndarray], n_moves: int
+) -> MapperReport:
+    """Fuse a keyframe, then re-integrate up to ``n_moves`` keyframes of ``pending`` (oldest
+    correction first; taken out of it)."""
     r = mapper.add_keyframe(
         item.t_ns,
         item.image_left,
@@ -90,7 +100,11 @@ def _add(mapper: Any, item: MapKeyframe) -> MapperReport:
         item.world_from_cam0,
         landmark_depth_range_m=item.landmark_depth_range_m,
     )
-    return MapperReport(r.t_ns, r.skipped, r.depth_ms, r.fusion_ms, r.blocks)
+    moved = 0
+    if pending and n_moves > 0:
+        batch = {t: pending.pop(t) for t in list(pending)[:n_moves]}
+        moved = mapper.update_poses(batch)
+    return MapperReport(r.t_ns, r.skipped, r.depth_ms, r.fusion_ms, r.blocks, moved)
 
 
 def _finish(mapper: Any, request: MapFinish) -> tuple[MapperSummary, MeshSnapshot | None]:
@@ -130,17 +144,27 @@ class MapperCore(WorkerCore):
         self.cfg = cfg
         self.mapper = _make_mapper(calib, cfg)
         self.last_mesh = time.perf_counter()
+        self.pending_poses: dict[int, np.ndarray] = {}
+        """Loop-corrected keyframe poses not re-integrated yet (t_ns -> world_from_cam0)."""
 
     def handle(self, msg: Any) -> list[Any]:
         if isinstance(msg, MapKeyframe):
-            out: list[Any] = [_add(self.mapper, msg)]
+            out: list[Any] = [
+                _add(self.mapper, msg, self.pending_poses, self.cfg.reintegrate_per_keyframe)
+            ]
             if self.live_mesh and time.perf_counter() - self.last_mesh > self.cfg.mesh_every_s:
                 snap = _snapshot(self.mapper, msg.t_ns)
                 if snap is not None:
                     out.append(snap)
                 self.last_mesh = time.perf_counter()
             return out
+        if isinstance(msg, MapPoseUpdate):
+            for t in msg.world_from_cam0_by_t:  # a newer correction goes to the back
+                self.pending_poses.pop(t, None)
+            self.pending_poses.update(msg.world_from_cam0_by_t)
+            return []
         if isinstance(msg, MapFinish):
+            self.pending_poses.clear()  # the final poses supersede them
             summary, final = _finish(self.mapper, msg)
             return [summary] if final is None else [final, summary]
         return []
@@ -185,6 +209,10 @@ class MapperStage(ProcessStage):
         self.max_backlog_seen = 0
         self.max_lag_s = 0.0
         self.loop_corrections = 0
+        self.loop_reintegrated = 0
+        self.map_from_odom: dict[int, np.ndarray] = {}
+        """Latest loop correction per map segment (odometry -> corrected map)."""
+        self._t_by_keyframe_id: dict[int, int] = {}
         self._sent_wall: dict[int, float] = {}
         self.lag_wall_ms: list[float] = []
         """Per processed keyframe: wall time from its arrival here to its report (queue + work)."""
@@ -201,6 +229,7 @@ class MapperStage(ProcessStage):
             now = time.perf_counter()
             with self._lock:
                 self.reports.append(item)
+                self.loop_reintegrated += item.reintegrated
                 behind_s = max(self.newest_t_ns - item.t_ns, 0) * 1e-9
                 self.max_lag_s = max(self.max_lag_s, behind_s)
                 self.lag_behind_ms.append(behind_s * 1e3)
@@ -217,15 +246,25 @@ class MapperStage(ProcessStage):
     # -- stage -----------------------------------------------------------------------------
     def process(self, msg: Any) -> None:
         if isinstance(msg, LoopCorrection):
-            # Counted for now: the final re-integration uses the loop-closed poses.
             self.loop_corrections += 1
+            self.map_from_odom.update(msg.map_from_odom)
+            with self._lock:
+                fused = set(self.sent)
+            poses = {
+                t: np.asarray(msg.corrected_keyframe_poses[k]) @ self.body_from_cam0
+                for k, t in self._t_by_keyframe_id.items()
+                if k in msg.corrected_keyframe_poses and t in fused
+            }
+            if poses and self.cfg.reintegrate_per_keyframe > 0 and self.error is None:
+                self.send(MapPoseUpdate(poses))
             return
         if not isinstance(msg, Keyframe):
             return
-        pose = msg.world_from_body_vo @ self.body_from_cam0
-        item = MapKeyframe(
-            msg.t_ns, msg.image_left, msg.image_right, pose, _landmark_depth_range(msg, pose)
-        )
+        pose_odom = msg.world_from_body_vo @ self.body_from_cam0
+        depth_range = _landmark_depth_range(msg, pose_odom)  # landmarks: odometry world
+        pose = self.map_from_odom.get(msg.segment_id, np.eye(4)) @ pose_odom
+        item = MapKeyframe(msg.t_ns, msg.image_left, msg.image_right, pose, depth_range)
+        self._t_by_keyframe_id[msg.keyframe_id] = msg.t_ns
         with self._lock:
             self.received += 1
             self.newest_t_ns = max(self.newest_t_ns, msg.t_ns)
@@ -281,6 +320,7 @@ class MapperStage(ProcessStage):
         return {
             "mode": "process" if self.use_process else "in-process",
             "loop_corrections_received": self.loop_corrections,
+            "loop_reintegrated": self.loop_reintegrated,
             "keeps_up": self.dropped_lag == 0,
             "keyframes_received": self.received,
             "dropped_fraction": self.dropped_lag / max(self.received, 1),
