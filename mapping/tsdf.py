@@ -75,6 +75,8 @@ class TsdfConfig:
     kernel: str = "auto"
     """Update loop: "numba" (compiled, the ``fast`` extra), "numpy", or "auto" (numba when it
     imports)."""
+    threads: int = 1
+    """Threads of the compiled update loop (blocks shared out; numpy: ignored)."""
 
     @property
     def trunc_m(self) -> float:
@@ -114,7 +116,7 @@ class TsdfVolume:
         g = np.arange(b)
         local = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
         self._local_m = (local * self.config.voxel_m).astype(np.float32)  # (B^3, 3)
-        self._kernel = _load_kernel(self.config.kernel)
+        self._kernel = _load_kernel(self.config.kernel, self.config.threads)
 
     @property
     def kernel(self) -> str:
@@ -258,6 +260,10 @@ class TsdfVolume:
             raise ValueError(f"colour image {color_img.shape[:2]} differs from depth {(h, w)}")
         wmap = None if weight_map is None else np.ascontiguousarray(weight_map, np.float32)
         if self._kernel is not None:
+            if self.config.threads > 1:
+                import numba
+
+                numba.set_num_threads(min(self.config.threads, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
             n_upd = self._kernel(
                 slots,
                 self._block_xyz,
@@ -440,16 +446,16 @@ def numba_available() -> bool:
     return _load_kernel("auto") is not None
 
 
-def _load_kernel(name: str):  # noqa: ANN202 - a numba dispatcher or None
+def _load_kernel(name: str, threads: int = 1):  # noqa: ANN202 - a numba dispatcher or None
     """The compiled update loop for ``kernel`` "numba"/"auto", None for numpy."""
     if name == "numpy":
         return None
     if name not in ("auto", "numba"):
         raise ValueError(f"TSDF kernel {name!r}: use auto, numba or numpy")
     try:
-        from mapping.tsdf_numba import integrate_blocks
+        from mapping.tsdf_numba import integrate_blocks, integrate_blocks_parallel
     except ImportError:
         if name == "numba":
             raise
         return None
-    return integrate_blocks
+    return integrate_blocks_parallel if threads > 1 else integrate_blocks

@@ -11,7 +11,7 @@ Importing this module raises ImportError without numba; :mod:`mapping.tsdf` then
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 _KEY_BITS = 21  # as mapping.tsdf.pack_block_keys
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
@@ -62,8 +62,7 @@ def block_keys_near_surface(
     return out[:n]
 
 
-@njit(cache=True, nogil=True)
-def integrate_blocks(
+def _integrate_blocks(
     slots: np.ndarray,  # (Nb,) int64
     block_xyz: np.ndarray,  # (capacity, 3) int64
     block_size: int,
@@ -100,7 +99,7 @@ def integrate_blocks(
     dmax = np.float32(max_depth_m)
     block_m = voxel_m * bs
     n_upd = 0
-    for bi in range(slots.shape[0]):
+    for bi in prange(slots.shape[0]):  # blocks are distinct: no two iterations share a voxel
         s = slots[bi]
         ox = block_xyz[s, 0] * block_m
         oy = block_xyz[s, 1] * block_m
@@ -167,3 +166,9 @@ def integrate_blocks(
                                 cw_new = np.float32(max_weight)
                             color_weight[s, li] = cw_new
     return n_upd
+
+
+integrate_blocks = njit(cache=True, nogil=True)(_integrate_blocks)
+"""One thread (``prange`` runs as ``range``)."""
+integrate_blocks_parallel = njit(cache=True, nogil=True, parallel=True)(_integrate_blocks)
+"""Blocks shared out over numba's threads (``numba.set_num_threads``)."""

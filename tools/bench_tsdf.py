@@ -8,6 +8,12 @@ median over passes of the per-pass median wall time per integration (all passes 
 median CPU time (which other processes on a shared machine disturb less), and the size of the
 mesh each volume gives (an integration that fuses nothing is fast, so check it).
 
+``--baseline FILE``: also time the ``TsdfVolume`` of another version of ``mapping/tsdf.py``
+(before/after within one session), e.g.
+
+    git show e702246:mapping/tsdf.py > /tmp/tsdf_before.py
+    .venv/bin/python -m tools.bench_tsdf --baseline /tmp/tsdf_before.py
+
     .venv/bin/python -m tools.bench_tsdf [--frames 40] [--repeats 3] [--voxel 0.01]
 """
 
@@ -18,6 +24,7 @@ import importlib
 import json
 import os
 import statistics
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -46,11 +53,15 @@ def _timed_pass(
     }
 
 
-def _ours(kernel: str, frames: list, K: np.ndarray, voxel_m: float) -> dict[str, float]:
+def _ours(
+    kernel: str, frames: list, K: np.ndarray, voxel_m: float, threads: int = 1
+) -> dict[str, float]:
     from mapping.mesh import extract_mesh
     from mapping.tsdf import TsdfConfig, TsdfVolume
 
-    cfg = TsdfConfig(voxel_m=voxel_m, truncation_m=4 * voxel_m, max_depth_m=4.0, kernel=kernel)
+    cfg = TsdfConfig(
+        voxel_m=voxel_m, truncation_m=4 * voxel_m, max_depth_m=4.0, kernel=kernel, threads=threads
+    )
     vol = TsdfVolume(cfg)
     vol.integrate(frames[0].depth_m, K, frames[0].world_from_cam, frames[0].color_rgb)  # JIT
     vol = TsdfVolume(cfg)
@@ -58,6 +69,24 @@ def _ours(kernel: str, frames: list, K: np.ndarray, voxel_m: float) -> dict[str,
         lambda fr: vol.integrate(fr.depth_m, K, fr.world_from_cam, fr.color_rgb),
         frames,
         lambda: extract_mesh(vol).num_vertices,
+    )
+
+
+def _baseline(path: Path, frames: list, K: np.ndarray, voxel_m: float) -> dict[str, float]:
+    import importlib.util
+
+    from mapping.mesh import TriangleMesh
+
+    spec = importlib.util.spec_from_file_location("tsdf_baseline", path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["tsdf_baseline"] = mod  # dataclasses look their module up
+    spec.loader.exec_module(mod)
+    vol = mod.TsdfVolume(mod.TsdfConfig(voxel_m=voxel_m, truncation_m=4 * voxel_m, max_depth_m=4.0))
+    return _timed_pass(
+        lambda fr: vol.integrate(fr.depth_m, K, fr.world_from_cam, fr.color_rgb),
+        frames,
+        lambda: int(TriangleMesh.empty().num_vertices + vol.observed_voxel_count() > 0),
     )
 
 
@@ -108,7 +137,9 @@ def _open3d_scalable(o3d: Any, frames: list, K: np.ndarray, voxel_m: float) -> d
     return _timed_pass(integrate, frames, lambda: len(vol.extract_triangle_mesh().vertices))
 
 
-def run(n_frames: int, repeats: int, voxel_m: float) -> dict[str, Any]:
+def run(
+    n_frames: int, repeats: int, voxel_m: float, baseline: Path | None = None
+) -> dict[str, Any]:
     from datasets.rgbd_folder import RgbdFolder
     from mapping.tsdf import numba_available
 
@@ -116,8 +147,11 @@ def run(n_frames: int, repeats: int, voxel_m: float) -> dict[str, Any]:
     ids = np.linspace(0, len(folder) - 1, n_frames).round().astype(int)
     frames = [folder.frame(int(i)) for i in ids]
     backends: dict[str, Callable[[], dict[str, float]]] = {}
+    if baseline is not None:
+        backends["baseline"] = lambda: _baseline(baseline, frames, folder.K, voxel_m)
     if numba_available():
         backends["ours_numba"] = lambda: _ours("numba", frames, folder.K, voxel_m)
+        backends["ours_numba_2threads"] = lambda: _ours("numba", frames, folder.K, voxel_m, 2)
     backends["ours_numpy"] = lambda: _ours("numpy", frames, folder.K, voxel_m)
     try:
         o3d: Any = importlib.import_module("open3d")  # optional: the `mesh` extra
@@ -132,11 +166,13 @@ def run(n_frames: int, repeats: int, voxel_m: float) -> dict[str, Any]:
         "voxel_m": voxel_m,
         "repeats": repeats,
         "open3d": "not installed" if o3d is None else o3d.__version__,
+        "load_average_start": os.getloadavg(),
     }
     passes: dict[str, list[dict[str, float]]] = {name: [] for name in backends}
     for _ in range(repeats):  # interleaved, so a busy spell hits every backend alike
         for name, fn in backends.items():
             passes[name].append(fn())
+    out["load_average_end"] = os.getloadavg()
     for name, ps in passes.items():
         out[name] = {
             "ms_median": round(statistics.median(p["ms"] for p in ps), 2),
@@ -152,9 +188,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=40, help="frames spread over the 400 (40)")
     ap.add_argument("--repeats", type=int, default=3, help="passes; median of them (3)")
     ap.add_argument("--voxel", type=float, default=0.01, help="voxel size, m (0.01)")
+    ap.add_argument("--baseline", type=Path, help="another mapping/tsdf.py to time too")
     ap.add_argument("--json", type=Path, help="write the figures here too")
     args = ap.parse_args(argv)
-    out = run(args.frames, args.repeats, args.voxel)
+    out = run(args.frames, args.repeats, args.voxel, args.baseline)
     text = json.dumps(out, indent=2)
     print(text)
     if args.json:
