@@ -34,8 +34,9 @@ class MapperStageConfig:
     num_planes: int = bounded(96, ge=2)
     """Plane-sweep depth hypotheses (inverse-depth sampled; ``depth_method: sweep``)."""
     sweep_threads: int = bounded(2, ge=1)
-    """Depth threads in the worker (plane sweep strips; SGBM: OpenCV's pool) (a background process: SCHED_IDLE, see
-    ``player.idle_workers``, so it yields to tracking)."""
+    """Threads of the worker's depth (plane sweep strips; SGBM: OpenCV's pool) and fusion
+    (numba); a background process (nice +15, or SCHED_IDLE: ``player.idle_workers``), so it
+    yields to tracking."""
     max_backlog: int = bounded(4, ge=1)
     """Keyframes waiting for the mapper; beyond that a keyframe is dropped (and counted)."""
     mesh_every_s: float = bounded(5.0, ge=0)

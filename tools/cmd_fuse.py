@@ -86,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
 
         trajectory = read_trajectory(args.trajectory).trajectory
     config = MapperConfig(
-        tsdf=TsdfConfig(voxel_m=args.voxel, max_depth_m=args.depth_max),
+        tsdf=TsdfConfig(voxel_m=args.voxel, max_depth_m=args.depth_max, threads=2),
         sweep=SweepConfig(
             depth_min_m=args.depth_min,
             depth_max_m=max(args.depth_max * 1.5, args.depth_min * 2),

@@ -52,7 +52,9 @@ def _make_mapper(calib: Calibration, cfg: MapperStageConfig) -> Any:
     from mapping.tsdf import TsdfConfig
 
     config = MapperConfig(
-        tsdf=TsdfConfig(voxel_m=cfg.voxel_m, max_depth_m=cfg.max_depth_m),
+        tsdf=TsdfConfig(
+            voxel_m=cfg.voxel_m, max_depth_m=cfg.max_depth_m, threads=cfg.sweep_threads
+        ),
         sweep=SweepConfig(
             depth_min_m=0.4,
             depth_max_m=8.0,
