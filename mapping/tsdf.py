@@ -400,6 +400,18 @@ class TsdfVolume:
         """Remove a depth map integrated earlier with the same pose (exact without weight clamp)."""
         return self.integrate(depth_m, K, world_from_cam, color, weight=-1.0, weight_map=weight_map)
 
+    def warm_up(self) -> None:
+        """Load (or compile, once: numba caches it on disk) the update loop now, on a scratch
+        volume of the same configuration, so the first real depth map does not wait ~1 s."""
+        if self._kernel is None:
+            return
+        k = np.array([[50.0, 0.0, 16.0], [0.0, 50.0, 12.0], [0.0, 0.0, 1.0]])
+        depth = np.full((24, 32), 1.0, np.float32)
+        scratch = TsdfVolume(self.config, initial_capacity=8)
+        scratch.integrate(
+            depth, k, np.eye(4), np.zeros((24, 32, 3), np.uint8), weight_map=np.ones_like(depth)
+        )
+
     # --- queries -------------------------------------------------------------------------------
     def voxel_positions(self, slots: np.ndarray | None = None) -> np.ndarray:
         """(N, B^3, 3) float64 world positions of the voxels of the given blocks (all by default)."""

@@ -6,6 +6,14 @@ temporaries for the same work (7-Scenes 640x480 at 1 cm: see BENCHMARKS.md "Mapp
 arithmetic is the numpy version's, step for step, so both give the same volume (tested).
 
 Importing this module raises ImportError without numba; :mod:`mapping.tsdf` then falls back.
+Why not Open3D (a well-kept library): 0.20's legacy ``ScalableTSDFVolume`` integrates nothing
+in the ``open3d-cpu`` wheel here, and its tensor ``VoxelBlockGrid`` was slower than this loop
+and has neither de-integration nor per-pixel weights, which loop corrections and stereo
+depth need (BENCHMARKS.md "Mapping").
+
+Each compiled function has its own name: numba's on-disk cache is keyed by it (two
+dispatchers of one Python function overwrite each other's cache and recompile in every
+process, 30 s for the parallel one under load).
 """
 
 from __future__ import annotations
@@ -62,8 +70,9 @@ def block_keys_near_surface(
     return out[:n]
 
 
-def _integrate_blocks(
-    slots: np.ndarray,  # (Nb,) int64
+@njit(cache=True, nogil=True)
+def _update_block(
+    s: int,  # the block's slot
     block_xyz: np.ndarray,  # (capacity, 3) int64
     block_size: int,
     voxel_m: float,
@@ -83,8 +92,8 @@ def _integrate_blocks(
     color_x256: np.ndarray,  # (capacity, B^3, 3) uint16, updated
     color_weight: np.ndarray,  # (capacity, B^3) float32, updated
 ) -> int:
-    """Update every voxel of the given blocks from one depth map (see ``mapping.tsdf``);
-    returns how many were updated. Voxel (x, y, z) of a block is local index (x B + y) B + z."""
+    """Update every voxel of one block from one depth map (see ``mapping.tsdf``); returns how
+    many were updated. Voxel (x, y, z) of a block is local index (x B + y) B + z."""
     h, w = depth.shape
     has_color = color.shape[0] > 0
     has_wmap = weight_map.shape[0] > 0
@@ -99,76 +108,103 @@ def _integrate_blocks(
     dmax = np.float32(max_depth_m)
     block_m = voxel_m * bs
     n_upd = 0
-    for bi in prange(slots.shape[0]):  # blocks are distinct: no two iterations share a voxel
-        s = slots[bi]
-        ox = block_xyz[s, 0] * block_m
-        oy = block_xyz[s, 1] * block_m
-        oz = block_xyz[s, 2] * block_m
-        for x in range(bs):
-            px = np.float32(ox + x * voxel_m)
-            for y in range(bs):
-                py = np.float32(oy + y * voxel_m)
-                a0 = k_rot[0, 0] * px + k_rot[0, 1] * py + k_trans[0]
-                a1 = k_rot[1, 0] * px + k_rot[1, 1] * py + k_trans[1]
-                a2 = k_rot[2, 0] * px + k_rot[2, 1] * py + k_trans[2]
-                base = (x * bs + y) * bs
-                for z in range(bs):
-                    pz = np.float32(oz + z * voxel_m)
-                    zc = a2 + k_rot[2, 2] * pz
-                    if not zc > zmin:
-                        continue
-                    inv_z = f1 / zc
-                    u = (a0 + k_rot[0, 2] * pz) * inv_z + half  # nearest pixel centre
-                    v = (a1 + k_rot[1, 2] * pz) * inv_z + half
-                    if not (u >= 0 and v >= 0 and u < w and v < h):
-                        continue
-                    ui = int(u)
-                    vi = int(v)
-                    d = depth[vi, ui]
-                    if not (d >= dmin and d <= dmax):
-                        continue
-                    sdf = d - zc
-                    if sdf < -trunc:
-                        continue
-                    inc = np.float32(wgt)
-                    if has_wmap:
-                        inc *= weight_map[vi, ui]
-                    if inc == 0:
-                        continue
-                    n_upd += 1
-                    li = base + z
-                    obs = min(sdf * inv_trunc, f1)
-                    w_new = weight[s, li] + inc
-                    if w_new <= min_weight:  # removed to nothing: back to unobserved
-                        tsdf[s, li] = f1
-                        weight[s, li] = 0
+    ox = block_xyz[s, 0] * block_m
+    oy = block_xyz[s, 1] * block_m
+    oz = block_xyz[s, 2] * block_m
+    for x in range(bs):
+        px = np.float32(ox + x * voxel_m)
+        for y in range(bs):
+            py = np.float32(oy + y * voxel_m)
+            a0 = k_rot[0, 0] * px + k_rot[0, 1] * py + k_trans[0]
+            a1 = k_rot[1, 0] * px + k_rot[1, 1] * py + k_trans[1]
+            a2 = k_rot[2, 0] * px + k_rot[2, 1] * py + k_trans[2]
+            base = (x * bs + y) * bs
+            for z in range(bs):
+                pz = np.float32(oz + z * voxel_m)
+                zc = a2 + k_rot[2, 2] * pz
+                if not zc > zmin:
+                    continue
+                inv_z = f1 / zc
+                u = (a0 + k_rot[0, 2] * pz) * inv_z + half  # nearest pixel centre
+                v = (a1 + k_rot[1, 2] * pz) * inv_z + half
+                if not (u >= 0 and v >= 0 and u < w and v < h):
+                    continue
+                ui = int(u)
+                vi = int(v)
+                d = depth[vi, ui]
+                if not (d >= dmin and d <= dmax):
+                    continue
+                sdf = d - zc
+                if sdf < -trunc:
+                    continue
+                inc = np.float32(wgt)
+                if has_wmap:
+                    inc *= weight_map[vi, ui]
+                if inc == 0:
+                    continue
+                n_upd += 1
+                li = base + z
+                obs = min(sdf * inv_trunc, f1)
+                w_new = weight[s, li] + inc
+                if w_new <= min_weight:  # removed to nothing: back to unobserved
+                    tsdf[s, li] = f1
+                    weight[s, li] = 0
+                else:
+                    t_old = tsdf[s, li]
+                    t_new = t_old + inc * (obs - t_old) / w_new
+                    tsdf[s, li] = min(max(t_new, -f1), f1)
+                    if max_weight > 0 and w_new > max_weight:
+                        w_new = np.float32(max_weight)
+                    weight[s, li] = w_new
+                if has_color and abs(sdf) < near:
+                    cw_new = color_weight[s, li] + inc
+                    if cw_new <= min_weight:
+                        color_weight[s, li] = 0
+                        for c in range(3):
+                            color_x256[s, li, c] = 0
                     else:
-                        t_old = tsdf[s, li]
-                        t_new = t_old + inc * (obs - t_old) / w_new
-                        tsdf[s, li] = min(max(t_new, -f1), f1)
-                        if max_weight > 0 and w_new > max_weight:
-                            w_new = np.float32(max_weight)
-                        weight[s, li] = w_new
-                    if has_color and abs(sdf) < near:
-                        cw_new = color_weight[s, li] + inc
-                        if cw_new <= min_weight:
-                            color_weight[s, li] = 0
-                            for c in range(3):
-                                color_x256[s, li, c] = 0
-                        else:
-                            frac = inc / cw_new
-                            for c in range(3):
-                                c_old = np.float32(color_x256[s, li, c])
-                                c_obs = np.float32(color[vi, ui, c]) * np.float32(256.0)
-                                c_new = c_old + (c_obs - c_old) * frac + half
-                                color_x256[s, li, c] = np.uint16(min(max(c_new, 0.0), 65535.0))
-                            if max_weight > 0 and cw_new > max_weight:
-                                cw_new = np.float32(max_weight)
-                            color_weight[s, li] = cw_new
+                        frac = inc / cw_new
+                        for c in range(3):
+                            c_old = np.float32(color_x256[s, li, c])
+                            c_obs = np.float32(color[vi, ui, c]) * np.float32(256.0)
+                            c_new = c_old + (c_obs - c_old) * frac + half
+                            color_x256[s, li, c] = np.uint16(min(max(c_new, 0.0), 65535.0))
+                        if max_weight > 0 and cw_new > max_weight:
+                            cw_new = np.float32(max_weight)
+                        color_weight[s, li] = cw_new
     return n_upd
 
 
-integrate_blocks = njit(cache=True, nogil=True)(_integrate_blocks)
-"""One thread (``prange`` runs as ``range``)."""
-integrate_blocks_parallel = njit(cache=True, nogil=True, parallel=True)(_integrate_blocks)
-"""Blocks shared out over numba's threads (``numba.set_num_threads``)."""
+@njit(cache=True, nogil=True)
+def integrate_blocks(
+    slots, block_xyz, block_size, voxel_m, k_rot, k_trans, depth, color, weight_map, wgt,
+    trunc_m, min_depth_m, max_depth_m, max_weight, min_weight, tsdf, weight, color_x256,
+    color_weight,
+):  # fmt: skip
+    """Every voxel of the blocks ``slots`` ((Nb,) int64; the other arguments as
+    :func:`_update_block`), one thread."""
+    n = 0
+    for bi in range(slots.shape[0]):
+        n += _update_block(
+            slots[bi], block_xyz, block_size, voxel_m, k_rot, k_trans, depth, color,
+            weight_map, wgt, trunc_m, min_depth_m, max_depth_m, max_weight, min_weight, tsdf,
+            weight, color_x256, color_weight,
+        )  # fmt: skip
+    return n
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def integrate_blocks_parallel(
+    slots, block_xyz, block_size, voxel_m, k_rot, k_trans, depth, color, weight_map, wgt,
+    trunc_m, min_depth_m, max_depth_m, max_weight, min_weight, tsdf, weight, color_x256,
+    color_weight,
+):  # fmt: skip
+    """The same, blocks shared out over numba's threads (distinct blocks share no voxel)."""
+    n = 0
+    for bi in prange(slots.shape[0]):
+        n += _update_block(
+            slots[bi], block_xyz, block_size, voxel_m, k_rot, k_trans, depth, color,
+            weight_map, wgt, trunc_m, min_depth_m, max_depth_m, max_weight, min_weight, tsdf,
+            weight, color_x256, color_weight,
+        )  # fmt: skip
+    return n

@@ -145,6 +145,7 @@ class MapperCore(WorkerCore):
             cv2.setNumThreads(1)
         self.cfg = cfg
         self.mapper = _make_mapper(calib, cfg)
+        self.mapper.volume.warm_up()  # before the first keyframe, not during it
         self.last_mesh = time.perf_counter()
         self.pending_poses: dict[int, np.ndarray] = {}
         """Loop-corrected keyframe poses not re-integrated yet (t_ns -> world_from_cam0)."""
