@@ -9,6 +9,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from slam.core.bounds import bounded
+from slam.core.errors import SlamError
+
+DEPTH_METHODS = ("sgbm", "sweep")
 
 
 @dataclass(frozen=True)
@@ -22,16 +25,31 @@ class MapperStageConfig:
     # bounds: above the plane sweep's nearest plane (0.4 m, the mapper stage's _make_mapper)
     max_depth_m: float = bounded(4.0, gt=0.4)
     """Depths beyond this are not fused."""
-    depth_scale: float = bounded(0.5, gt=0, le=1)
-    """Plane sweep at this fraction of the image size (0.5 is ~4x cheaper than full size)."""
+    depth_method: str = "sgbm"
+    """Stereo depth per keyframe: "sgbm" (semi-global matching on the rectified pair, ~4x
+    cheaper than the sweep at full size) or "sweep" (plane sweep over the pair and the
+    previous keyframe)."""
+    depth_scale: float = bounded(1.0, gt=0, le=1)
+    """Depth at this fraction of the image size (0.5 is ~3-4x cheaper, but coarser)."""
     num_planes: int = bounded(96, ge=2)
-    """Plane-sweep depth hypotheses (inverse-depth sampled)."""
+    """Plane-sweep depth hypotheses (inverse-depth sampled; ``depth_method: sweep``)."""
     sweep_threads: int = bounded(2, ge=1)
-    """Plane-sweep threads in the worker (a background process: SCHED_IDLE, see
-    ``player.idle_workers``, so it yields to tracking)."""
+    """Threads of the worker's depth (plane sweep strips; SGBM: OpenCV's pool) and fusion
+    (numba); a background process (nice +15, or SCHED_IDLE: ``player.idle_workers``), so it
+    yields to tracking."""
     max_backlog: int = bounded(4, ge=1)
     """Keyframes waiting for the mapper; beyond that a keyframe is dropped (and counted)."""
     mesh_every_s: float = bounded(5.0, ge=0)
     """Send a mesh snapshot to the viewer at most this often (marching cubes is not free)."""
+    reintegrate_per_keyframe: int = bounded(2, ge=0, unit="keyframes")
+    """During the run, after each keyframe re-integrate at most this many keyframes that a loop
+    correction moved (spread out so the mapper keeps up); 0: only at the end."""
     final_reintegration: bool = True
     """At the end, re-integrate keyframes whose final (optimised, loop-closed) pose moved."""
+
+    def __post_init__(self) -> None:
+        if self.depth_method not in DEPTH_METHODS:
+            raise SlamError(
+                f"config key mapping.depth_method must be one of {', '.join(DEPTH_METHODS)}, "
+                f"got {self.depth_method!r}"
+            )

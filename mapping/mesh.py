@@ -89,7 +89,7 @@ def extract_mesh(
     volume: TsdfVolume, min_weight: float = 0.0, batch_blocks: int = 2048
 ) -> TriangleMesh:
     """Marching cubes at the zero level of a TSDF (only cubes whose 8 corners have weight >
-    ``min_weight``). Vertex colours are those of the nearest voxel."""
+    ``min_weight``). Vertex colours: see ``_vertex_colors``."""
     cfg = volume.config
     b = cfg.block_size
     n_blocks = volume.num_blocks
@@ -143,7 +143,7 @@ def extract_mesh(
     verts_vox, faces = _merge_duplicate_vertices(verts_vox, faces)
     vertices_m = (verts_vox * cfg.voxel_m).astype(np.float32)
     normals = vertex_normals(vertices_m, faces)
-    colors = _vertex_colors(volume, verts_vox)
+    colors = _vertex_colors(volume, verts_vox, faces)
     return TriangleMesh(vertices_m, faces.astype(np.int32), normals, colors)
 
 
@@ -165,17 +165,53 @@ def _merge_duplicate_vertices(
     return verts_vox[first], faces[good]
 
 
-def _vertex_colors(volume: TsdfVolume, verts_vox: np.ndarray) -> np.ndarray:
-    """Colour of the nearest voxel of each vertex (black where that voxel is unallocated)."""
+def _vertex_colors(volume: TsdfVolume, verts_vox: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Vertex colours: a vertex lies on the lattice edge between two voxels; its colour is
+    theirs, interpolated by position, over those that hold fused colour. A vertex whose two
+    voxels hold none (observed only without colour, e.g. geometry-only re-integration) takes
+    the mean of its coloured mesh neighbours (repeatedly, so colour flows into small holes);
+    what no colour reaches stays mid-grey, never black."""
     b = volume.config.block_size
-    g = np.round(verts_vox).astype(np.int64)
-    blk = np.floor_divide(g, b)
-    loc = g - blk * b
-    slots = volume.lookup(pack_block_keys(blk))
-    flat = (loc[:, 0] * b + loc[:, 1]) * b + loc[:, 2]
-    colors = volume.color[np.maximum(slots, 0), flat]
-    colors[slots < 0] = 0
-    return colors
+    base = np.floor(verts_vox + 1e-6).astype(np.int64)
+    frac = np.clip(verts_vox - base, 0.0, 1.0)
+    axis = np.argmax(frac, axis=1)
+    t = frac[np.arange(len(frac)), axis]
+    ends = [base, base.copy()]
+    ends[1][np.arange(len(base)), axis] += 1
+    acc = np.zeros((len(verts_vox), 3), np.float64)
+    wsum = np.zeros(len(verts_vox), np.float64)
+    for g, wt in zip(ends, (1.0 - t, t)):
+        blk = np.floor_divide(g, b)
+        loc = g - blk * b
+        slots = volume.lookup(pack_block_keys(blk))
+        flat = (loc[:, 0] * b + loc[:, 1]) * b + loc[:, 2]
+        sl = np.maximum(slots, 0)
+        ok = (slots >= 0) & volume.has_color(sl, flat)
+        wv = np.where(ok, wt + 1e-6, 0.0)  # a vertex on a voxel still counts its neighbour
+        acc += wv[:, None] * volume.colors_u8(sl, flat)
+        wsum += wv
+    colored = wsum > 0
+    acc[colored] /= wsum[colored, None]
+    if not colored.all() and colored.any() and len(faces):
+        f = faces.astype(np.int64)
+        src = np.concatenate([f[:, 0], f[:, 1], f[:, 2], f[:, 1], f[:, 2], f[:, 0]])
+        dst = np.concatenate([f[:, 1], f[:, 2], f[:, 0], f[:, 0], f[:, 1], f[:, 2]])
+        for _ in range(8):
+            todo = ~colored
+            if not todo.any():
+                break
+            use = colored[src] & todo[dst]
+            if not use.any():
+                break
+            csum = np.zeros((len(acc), 3))
+            cnt = np.zeros(len(acc))
+            np.add.at(csum, dst[use], acc[src[use]])
+            np.add.at(cnt, dst[use], 1.0)
+            newly = cnt > 0
+            acc[newly] = csum[newly] / cnt[newly, None]
+            colored |= newly
+    acc[~colored] = 128.0
+    return np.clip(acc + 0.5, 0, 255).astype(np.uint8)
 
 
 def poisson_available() -> bool:

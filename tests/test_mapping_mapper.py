@@ -20,13 +20,16 @@ CAM1_FROM_CAM0 = np.eye(4)
 CAM1_FROM_CAM0[0, 3] = -0.11  # right camera 11 cm to the right of the left one
 
 
-def make_mapper(num_planes: int = 96, depth_scale: float = 1.0) -> DenseMapper:
+def make_mapper(
+    num_planes: int = 96, depth_scale: float = 1.0, depth_method: str = "sweep"
+) -> DenseMapper:
     intr = CameraIntrinsics(W, H, 230.0, 230.0, 160.0, 120.0)
     rig = StereoRig(Undistorter(intr), Undistorter(intr), K, K, CAM1_FROM_CAM0)
     cfg = MapperConfig(
         tsdf=TsdfConfig(voxel_m=0.02, max_depth_m=4.0),
         sweep=SweepConfig(depth_min_m=0.5, depth_max_m=6.0, num_planes=num_planes),
         depth_scale=depth_scale,
+        depth_method=depth_method,
     )
     return DenseMapper(cfg, rig)
 
@@ -68,10 +71,12 @@ def accuracy_completion(scene, frames, mesh):
     return acc, float(np.mean(dist < 0.05))
 
 
-@pytest.mark.parametrize("depth_scale", [1.0, 0.5])
-def test_stereo_sweep_fusion_meets_accuracy_and_completion(room, depth_scale):
+@pytest.mark.parametrize(
+    ("depth_method", "depth_scale"), [("sweep", 1.0), ("sweep", 0.5), ("sgbm", 1.0)]
+)
+def test_stereo_fusion_meets_accuracy_and_completion(room, depth_method, depth_scale):
     scene, frames = room
-    mapper = make_mapper(depth_scale=depth_scale)
+    mapper = make_mapper(depth_scale=depth_scale, depth_method=depth_method)
     for i, (pose, img, right, _) in enumerate(frames):
         rep = mapper.add_keyframe(i * 100_000_000, img, right, pose)
         assert rep.num_sources >= 1
@@ -97,14 +102,17 @@ def test_update_poses_reintegrates_to_the_corrected_map(room):
     assert mapper.update_poses({i: f[0] for i, f in enumerate(frames)}) == 0  # nothing moved
 
 
-def test_mapper_pickles_for_a_worker_process(room):
+@pytest.mark.parametrize("depth_method", ["sweep", "sgbm"])
+def test_mapper_pickles_for_a_worker_process(room, depth_method):
     _, frames = room
-    mapper = make_mapper(num_planes=16)
+    mapper = make_mapper(num_planes=16, depth_method=depth_method)
     pose, img, right, _ = frames[0]
     mapper.add_keyframe(0, img, right, pose)
     clone = pickle.loads(pickle.dumps(mapper))
     assert clone.volume.num_blocks == mapper.volume.num_blocks
     assert clone.mesh().num_faces == mapper.mesh().num_faces
+    pose, img, right, _ = frames[1]  # the clone still computes depth
+    assert clone.add_keyframe(1, img, right, pose).valid_fraction > 0.3
 
 
 def test_mesh_threshold_needs_multi_view_support(room):

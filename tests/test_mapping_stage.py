@@ -73,3 +73,35 @@ def test_stage_reports_lag_and_drops(threaded):
     else:  # in-process: every keyframe is mapped before the next, never behind
         assert stats["keyframes_dropped_lag"] == 0
         assert stats["lag_behind_s"]["max_s"] == 0.0
+
+
+def test_loop_correction_moves_the_map_during_the_run():
+    """In-process stage: keyframes fused, a loop correction shifts the map by 5 cm; the
+    keyframes it moved are re-integrated a few per new keyframe, and keyframes after it arrive
+    in the corrected map frame."""
+    from slam.core.messages import LoopCorrection
+
+    cfg = MapperStageConfig(
+        enabled=True, num_planes=16, reintegrate_per_keyframe=2, final_reintegration=False
+    )
+    stage = MapperStage(_calibration(), cfg, threaded=False)
+    kfs = _keyframes(8)
+    for kf in kfs[:4]:
+        stage.process(kf)
+    shift = np.eye(4)
+    shift[:3, 3] = [0.05, 0.0, 0.0]
+    corrected = {kf.keyframe_id: shift @ kf.world_from_body_vo for kf in kfs[:4]}
+    stage.process(LoopCorrection(kfs[3].t_ns, 0, 3, 0, 50, 1, {0: shift}, corrected))
+    for kf in kfs[4:]:
+        stage.process(kf)
+    mapper = stage._core.mapper  # in-process: the core lives here
+    stats = stage.stats()
+    fused_before = [kf.t_ns for kf in kfs[:4] if kf.t_ns in mapper._keyframes]
+    assert stats["loop_corrections_received"] == 1
+    assert stats["loop_reintegrated"] == len(fused_before) >= 3
+    for kf in kfs:
+        stored = mapper._keyframes.get(kf.t_ns)
+        if stored is not None:  # every fused keyframe sits in the corrected map
+            want = shift @ kf.world_from_body_vo
+            np.testing.assert_allclose(stored.world_from_view[:3, 3], want[:3, 3], atol=1e-9)
+    stage.finish({}, None)

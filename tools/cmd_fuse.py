@@ -12,7 +12,11 @@ Fuse depth maps into a sparse voxel-block TSDF and write its marching-cubes mesh
 Two inputs:
   * an RGB-D folder in the Microsoft 7-Scenes layout (frame-XXXXXX.color.jpg, .depth.png in mm
     with 0 = invalid, .pose.txt = 4x4 world_from_camera, optional camera-intrinsics.txt;
-    default fx = fy = 585, cx = 320, cy = 240): its sensor depth is fused with its poses;
+    default fx = fy = 585, cx = 320, cy = 240): its sensor depth is fused with its poses.
+    The colour camera is not the depth camera: its calibration is estimated from the frames
+    (once per folder, cached in ~/.cache/pyvislam/rgbd_calibration) and every colour image is
+    registered to its depth before fusion; the mesh's colour error against the registered
+    colour images is printed (--no-register-color: fuse the raw colour, to compare);
   * any sequence `slam info` can read (MCAP, ROS 2 bag, EuRoC/TUM-VI folder) plus a
     trajectory (TUM: t x y z qx qy qz qw, world_from_body; default: the sequence's ground
     truth): every N-th frame gets a plane-sweep depth map (stereo partner + the nearest earlier
@@ -20,6 +24,7 @@ Two inputs:
 
 Examples:
   slam fuse ../shared/data/7scenes_rgbd_400 --out kitchen.ply --voxel 0.02 --every 2
+  slam fuse ../shared/data/7scenes_rgbd_400 --out raw.ply --every 2 --no-register-color
   slam fuse room.mcap --out room.ply --every 10                 # synthetic: ground-truth poses
   slam fuse V1_01_easy --trajectory run1/trajectory.tum --out v101.ply --depth-max 6
   slam fuse room.mcap --out room.ply --points room_points.ply --poisson room_poisson.ply
@@ -48,6 +53,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--depth-min", type=float, default=0.4, help="nearest sweep plane, m")
     p.add_argument("--depth-max", type=float, default=5.0, help="farthest depth used, m")
     p.add_argument("--planes", type=int, default=64, help="plane-sweep planes (default 64)")
+    p.add_argument(
+        "--no-register-color",
+        action="store_true",
+        help="RGB-D: fuse the colour image as if the depth camera took it (no registration)",
+    )
+    p.add_argument(
+        "--color-error-frames",
+        type=int,
+        default=20,
+        help="RGB-D: frames the mesh colour error is measured on (default 20; 0: none)",
+    )
     p.add_argument("--points", type=Path, help="also write the surface voxels as a point cloud")
     p.add_argument(
         "--poisson", type=Path, help="also write a Poisson surface (needs the optional open3d)"
@@ -70,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
 
         trajectory = read_trajectory(args.trajectory).trajectory
     config = MapperConfig(
-        tsdf=TsdfConfig(voxel_m=args.voxel, max_depth_m=args.depth_max),
+        tsdf=TsdfConfig(voxel_m=args.voxel, max_depth_m=args.depth_max, threads=2),
         sweep=SweepConfig(
             depth_min_m=args.depth_min,
             depth_max_m=max(args.depth_max * 1.5, args.depth_min * 2),
@@ -85,7 +101,15 @@ def run(args: argparse.Namespace) -> int:
         config = MapperConfig(
             tsdf=config.tsdf, mesh_min_weight=0.0, min_motion_m=0.0, min_motion_deg=0.0
         )
-        result = fuse_rgbd_folder(args.input, config, args.every or 1, args.max_frames, trajectory)
+        result = fuse_rgbd_folder(
+            args.input,
+            config,
+            args.every or 1,
+            args.max_frames,
+            trajectory,
+            register_color=not args.no_register_color,
+            color_error_frames=max(0, args.color_error_frames),
+        )
     else:
         result = fuse_sequence(args.input, trajectory, config, args.every or 10, args.max_frames)
     if result.mesh.num_faces == 0:

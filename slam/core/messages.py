@@ -232,6 +232,7 @@ class MapperReport:
     depth_ms: float
     fusion_ms: float
     blocks: int  # allocated TSDF voxel blocks
+    reintegrated: int = 0  # keyframes re-integrated at loop-corrected poses after this one
 
 
 @dataclass(frozen=True, eq=False)
@@ -332,6 +333,15 @@ class MapKeyframe:
     image_left: np.ndarray
     image_right: np.ndarray | None
     world_from_cam0: np.ndarray  # (4, 4)
+    landmark_depth_range_m: tuple[float, float] | None = None  # its tracked landmarks' depths
+
+
+@dataclass(frozen=True, eq=False)
+class MapPoseUpdate:
+    """Loop-corrected poses of keyframes the mapper holds, during the run (it re-integrates the
+    moved ones a few at a time, between keyframes)."""
+
+    world_from_cam0_by_t: dict[int, np.ndarray]  # keyframe t_ns -> corrected world_from_cam0
 
 
 @dataclass(frozen=True, eq=False)

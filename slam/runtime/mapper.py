@@ -10,6 +10,11 @@ p50/p90/p99/max), and receives per-keyframe reports and
 periodic mesh snapshots (for rerun). At the end, keyframe poses are replaced by the final
 (back-end optimised, loop-closed) ones: the mapper **re-integrates** the keyframes that moved
 (de-integrate with the old pose, integrate with the new), then writes ``mesh.ply``.
+
+During the run, loop corrections move the map too: new keyframes arrive at their pose in the
+corrected map (``map_from_odom`` of their segment), and the keyframes a correction moved are
+sent as a :class:`MapPoseUpdate`; the core re-integrates ``reintegrate_per_keyframe`` of them
+after each keyframe, so the live mesh follows the loop closure without stalling the mapper.
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from slam.core.messages import (
     MapKeyframe,
     MapperReport,
     MapperSummary,
+    MapPoseUpdate,
     MeshSnapshot,
 )
 from slam.runtime.worker import ProcessStage, WorkerCore
@@ -46,7 +52,9 @@ def _make_mapper(calib: Calibration, cfg: MapperStageConfig) -> Any:
     from mapping.tsdf import TsdfConfig
 
     config = MapperConfig(
-        tsdf=TsdfConfig(voxel_m=cfg.voxel_m, max_depth_m=cfg.max_depth_m),
+        tsdf=TsdfConfig(
+            voxel_m=cfg.voxel_m, max_depth_m=cfg.max_depth_m, threads=cfg.sweep_threads
+        ),
         sweep=SweepConfig(
             depth_min_m=0.4,
             depth_max_m=8.0,
@@ -54,8 +62,24 @@ def _make_mapper(calib: Calibration, cfg: MapperStageConfig) -> Any:
             threads=cfg.sweep_threads,
         ),
         depth_scale=cfg.depth_scale,
+        depth_method=cfg.depth_method,
     )
     return DenseMapper.from_calibration(calib, config)
+
+
+def _landmark_depth_range(kf: Keyframe, world_from_cam0: np.ndarray) -> tuple[float, float] | None:
+    """(2nd, 98th) percentile depth (m) in cam0 of the keyframe's tracked landmarks; None with
+    fewer than 20 in front of the camera."""
+    pts = np.asarray(kf.points_world_vo, float)
+    if len(pts) == 0:
+        return None
+    cam0_from_world = np.linalg.inv(world_from_cam0)
+    z = pts @ cam0_from_world[2, :3] + cam0_from_world[2, 3]
+    z = z[np.isfinite(z) & (z > 0.05)]
+    if len(z) < 20:
+        return None
+    lo, hi = np.percentile(z, [2, 98])
+    return float(lo), float(hi)
 
 
 def _snapshot(mapper: Any, t_ns: int) -> MeshSnapshot | None:
@@ -66,9 +90,23 @@ def _snapshot(mapper: Any, t_ns: int) -> MeshSnapshot | None:
     return MeshSnapshot(t_ns, mesh.vertices_m, mesh.faces, mesh.normals, mesh.colors_rgb)
 
 
-def _add(mapper: Any, item: MapKeyframe) -> MapperReport:
-    r = mapper.add_keyframe(item.t_ns, item.image_left, item.image_right, item.world_from_cam0)
-    return MapperReport(r.t_ns, r.skipped, r.depth_ms, r.fusion_ms, r.blocks)
+def _add(
+    mapper: Any, item: MapKeyframe, pending: dict[int, np.ndarray], n_moves: int
+) -> MapperReport:
+    """Fuse a keyframe, then re-integrate up to ``n_moves`` keyframes of ``pending`` (oldest
+    correction first; taken out of it)."""
+    r = mapper.add_keyframe(
+        item.t_ns,
+        item.image_left,
+        item.image_right,
+        item.world_from_cam0,
+        landmark_depth_range_m=item.landmark_depth_range_m,
+    )
+    moved = 0
+    if pending and n_moves > 0:
+        batch = {t: pending.pop(t) for t in list(pending)[:n_moves]}
+        moved = mapper.update_poses(batch)
+    return MapperReport(r.t_ns, r.skipped, r.depth_ms, r.fusion_ms, r.blocks, moved)
 
 
 def _finish(mapper: Any, request: MapFinish) -> tuple[MapperSummary, MeshSnapshot | None]:
@@ -94,33 +132,49 @@ def _finish(mapper: Any, request: MapFinish) -> tuple[MapperSummary, MeshSnapsho
 class MapperCore(WorkerCore):
     """The dense mapper behind the stage: fuses keyframes, reports, snapshots meshes."""
 
-    def __init__(self, calib: Calibration, cfg: MapperStageConfig):
-        if cfg.sweep_threads > 1:
+    def __init__(self, calib: Calibration, cfg: MapperStageConfig, live_mesh: bool = True):
+        """``live_mesh``: send periodic mesh snapshots (only worth it when a viewer shows them:
+        marching cubes over the whole map holds up the keyframes behind it)."""
+        self.live_mesh = live_mesh
+        if cfg.depth_method == "sgbm":
+            cv2.setNumThreads(cfg.sweep_threads)  # StereoSGBM's rows in OpenCV's pool
+        elif cfg.sweep_threads > 1:
             # The sweep's own threads take whole strips; OpenCV's pool inside each call on top
             # of them only adds dispatch overhead (752x480, 64 planes, 2 views: 282-294 ->
             # 270-276 ms).
             cv2.setNumThreads(1)
         self.cfg = cfg
         self.mapper = _make_mapper(calib, cfg)
+        self.mapper.volume.warm_up()  # before the first keyframe, not during it
         self.last_mesh = time.perf_counter()
+        self.pending_poses: dict[int, np.ndarray] = {}
+        """Loop-corrected keyframe poses not re-integrated yet (t_ns -> world_from_cam0)."""
 
     def handle(self, msg: Any) -> list[Any]:
         if isinstance(msg, MapKeyframe):
-            out: list[Any] = [_add(self.mapper, msg)]
-            if time.perf_counter() - self.last_mesh > self.cfg.mesh_every_s:
+            out: list[Any] = [
+                _add(self.mapper, msg, self.pending_poses, self.cfg.reintegrate_per_keyframe)
+            ]
+            if self.live_mesh and time.perf_counter() - self.last_mesh > self.cfg.mesh_every_s:
                 snap = _snapshot(self.mapper, msg.t_ns)
                 if snap is not None:
                     out.append(snap)
                 self.last_mesh = time.perf_counter()
             return out
+        if isinstance(msg, MapPoseUpdate):
+            for t in msg.world_from_cam0_by_t:  # a newer correction goes to the back
+                self.pending_poses.pop(t, None)
+            self.pending_poses.update(msg.world_from_cam0_by_t)
+            return []
         if isinstance(msg, MapFinish):
+            self.pending_poses.clear()  # the final poses supersede them
             summary, final = _finish(self.mapper, msg)
             return [summary] if final is None else [final, summary]
         return []
 
 
-def _make_core(calib: Calibration, cfg: MapperStageConfig) -> MapperCore:
-    return MapperCore(calib, cfg)
+def _make_core(calib: Calibration, cfg: MapperStageConfig, live_mesh: bool) -> MapperCore:
+    return MapperCore(calib, cfg, live_mesh)
 
 
 class MapperStage(ProcessStage):
@@ -134,14 +188,16 @@ class MapperStage(ProcessStage):
         cfg: MapperStageConfig,
         threaded: bool,
         idle_worker: bool = False,
+        live_mesh: bool = True,
     ):
-        """``idle_worker``: run the worker process under SCHED_IDLE (``slam.runtime.priority``)."""
+        """``idle_worker``: run the worker process under SCHED_IDLE (``slam.runtime.priority``);
+        ``live_mesh``: snapshots for a viewer (see :class:`MapperCore`)."""
         super().__init__(
             "mapper",
             256,
             threaded,
             _make_core,
-            (calib, cfg),
+            (calib, cfg, live_mesh),
             role="mapper",
             idle=idle_worker,
         )
@@ -156,6 +212,10 @@ class MapperStage(ProcessStage):
         self.max_backlog_seen = 0
         self.max_lag_s = 0.0
         self.loop_corrections = 0
+        self.loop_reintegrated = 0
+        self.map_from_odom: dict[int, np.ndarray] = {}
+        """Latest loop correction per map segment (odometry -> corrected map)."""
+        self._t_by_keyframe_id: dict[int, int] = {}
         self._sent_wall: dict[int, float] = {}
         self.lag_wall_ms: list[float] = []
         """Per processed keyframe: wall time from its arrival here to its report (queue + work)."""
@@ -172,6 +232,7 @@ class MapperStage(ProcessStage):
             now = time.perf_counter()
             with self._lock:
                 self.reports.append(item)
+                self.loop_reintegrated += item.reintegrated
                 behind_s = max(self.newest_t_ns - item.t_ns, 0) * 1e-9
                 self.max_lag_s = max(self.max_lag_s, behind_s)
                 self.lag_behind_ms.append(behind_s * 1e3)
@@ -188,13 +249,25 @@ class MapperStage(ProcessStage):
     # -- stage -----------------------------------------------------------------------------
     def process(self, msg: Any) -> None:
         if isinstance(msg, LoopCorrection):
-            # Counted for now: the final re-integration uses the loop-closed poses.
             self.loop_corrections += 1
+            self.map_from_odom.update(msg.map_from_odom)
+            with self._lock:
+                fused = set(self.sent)
+            poses = {
+                t: np.asarray(msg.corrected_keyframe_poses[k]) @ self.body_from_cam0
+                for k, t in self._t_by_keyframe_id.items()
+                if k in msg.corrected_keyframe_poses and t in fused
+            }
+            if poses and self.cfg.reintegrate_per_keyframe > 0 and self.error is None:
+                self.send(MapPoseUpdate(poses))
             return
         if not isinstance(msg, Keyframe):
             return
-        pose = msg.world_from_body_vo @ self.body_from_cam0
-        item = MapKeyframe(msg.t_ns, msg.image_left, msg.image_right, pose)
+        pose_odom = msg.world_from_body_vo @ self.body_from_cam0
+        depth_range = _landmark_depth_range(msg, pose_odom)  # landmarks: odometry world
+        pose = self.map_from_odom.get(msg.segment_id, np.eye(4)) @ pose_odom
+        item = MapKeyframe(msg.t_ns, msg.image_left, msg.image_right, pose, depth_range)
+        self._t_by_keyframe_id[msg.keyframe_id] = msg.t_ns
         with self._lock:
             self.received += 1
             self.newest_t_ns = max(self.newest_t_ns, msg.t_ns)
@@ -250,6 +323,7 @@ class MapperStage(ProcessStage):
         return {
             "mode": "process" if self.use_process else "in-process",
             "loop_corrections_received": self.loop_corrections,
+            "loop_reintegrated": self.loop_reintegrated,
             "keeps_up": self.dropped_lag == 0,
             "keyframes_received": self.received,
             "dropped_fraction": self.dropped_lag / max(self.received, 1),

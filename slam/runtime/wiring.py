@@ -108,7 +108,9 @@ def build(seq: Sequence, cfg: SlamConfig, session: ViewerSession | None) -> Pipe
         )
         p.imu_consumers.append(p.backend)
     if cfg.mapping.enabled:
-        p.mapper = MapperStage(seq.calibration, cfg.mapping, threaded, idle)
+        p.mapper = MapperStage(
+            seq.calibration, cfg.mapping, threaded, idle, live_mesh=viewer is not None
+        )
 
     fe = p.frontend
     fe.connect(recorder, FrontendCorrection, TrackingResult)

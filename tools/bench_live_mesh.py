@@ -1,0 +1,123 @@
+"""Does the live mapper keep up? `slam run --mesh` on the suite, with the mesh scored.
+
+Per suite sequence (``tools.benchmark.STANDARD_SUITE``, cached MCAPs), `slam run SEQ --mesh
+--speed S` in its own process, and (unless ``--no-baseline``) the same run without ``--mesh``
+right after it, so the front end's p99 latency with and without the mapper is compared within
+one session. From the mesh run's outputs:
+
+- keyframes dropped by the mapper (``stats.json`` mapping.dropped_fraction), depth ms per
+  keyframe;
+- mesh accuracy: mean distance (m) of the vertices to the true scene, after aligning the run's
+  world to the ground truth's (SE(3) Umeyama on the keyframe positions of ``keyframes.tum``);
+- completion: share of the true surface that the keyframes saw (exact depth at up to
+  ``--vis-keyframes`` ground-truth keyframe poses) lying within 5 cm of a vertex;
+- black vertices: share with RGB all below 8 (the issue's "RGB 0,0,0", with a margin).
+
+    .venv/bin/python -m tools.bench_live_mesh --out /tmp/live_mesh [--speed 1] [--only hall]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def mesh_scores(
+    entry: Any, run_dir: Path, vis_keyframes: int, duration_s: float | None
+) -> dict[str, Any]:
+    from datasets.ply import read_ply
+    from datasets.synth import make_synthetic_sequence
+    from mapping.planesweep import Undistorter
+    from slam.evaluation.align import umeyama
+    from slam.evaluation.io import read_trajectory
+    from tools.bench_mapping import distance_to_scene, visible_samples
+
+    ply = read_ply(run_dir / "mesh.ply")
+    verts = np.asarray(ply.points, float)
+    rgb = np.stack([ply.vertex[c] for c in ("red", "green", "blue")], axis=1)
+    seq = make_synthetic_sequence(entry.profile, duration_s=duration_s, seed=entry.seed)
+    est = read_trajectory(run_dir / "keyframes.tum").trajectory
+    gt_body = np.array([seq.world_from_body_at(int(t)) for t in est.t_ns])
+    rot, trans, _ = umeyama(est.positions_m, gt_body[:, :3, 3], with_scale=False)
+    verts_gt = verts @ rot.T + trans
+    times = seq.frame_times_ns()
+    pick = np.linspace(0, len(est.t_ns) - 1, min(vis_keyframes, len(est.t_ns))).round()
+    und0 = Undistorter(seq.calibration.cameras[0].intrinsics)
+    poses, depths = [], []
+    for k in pick.astype(int):
+        i = int(np.clip(np.searchsorted(times, est.t_ns[k]), 0, len(times) - 1))
+        poses.append(seq.world_from_cam(i, 0))
+        depths.append(und0(seq.depth(i), 0))  # cv2.INTER_NEAREST
+    samples = visible_samples(seq.scene, poses, depths, und0.K, 4.0)
+    from scipy.spatial import cKDTree
+
+    dist, _ = cKDTree(verts_gt).query(samples)
+    acc = distance_to_scene(seq.scene, verts_gt)
+    return {
+        "vertices": len(verts),
+        "accuracy_mean_m": round(float(acc.mean()), 4),
+        "accuracy_median_m": round(float(np.median(acc)), 4),
+        "completion_5cm": round(float(np.mean(dist < 0.05)), 4),
+        "black_fraction": round(float(np.mean(np.all(rgb < 8, axis=1))), 4),
+        "exact_black_fraction": round(float(np.mean(np.all(rgb == 0, axis=1))), 4),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    from tools.benchmark import STANDARD_SUITE, default_cache_dir, ensure_sequence, run_one
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--speed", default="1", help="slam run --speed (1)")
+    ap.add_argument("--only", nargs="*", help="suite names to run (all)")
+    ap.add_argument("--no-baseline", action="store_true", help="skip the run without --mesh")
+    ap.add_argument("--vis-keyframes", type=int, default=60, help="keyframes for completion")
+    ap.add_argument("--config", help="a config file or preset for both runs")
+    args = ap.parse_args(argv)
+    cache = default_cache_dir()
+    results: dict[str, Any] = {"speed": args.speed, "load_average_start": os.getloadavg()}
+    extra = [] if not args.config else ["--config", args.config]
+    for entry in STANDARD_SUITE:
+        if args.only and entry.name not in args.only:
+            continue
+        seq_path = ensure_sequence(entry, cache)
+        mesh_dir = args.out / f"{entry.name}-mesh"
+        stats = run_one(seq_path, mesh_dir, None, ["--mesh", *extra], speed=args.speed)
+        mp = stats.get("mapping", {})
+        fe = stats.get("latency", {}).get("frontend_frame", {})
+        row: dict[str, Any] = {
+            "keyframes_received": mp.get("keyframes_received"),
+            "dropped_fraction": round(float(mp.get("dropped_fraction", float("nan"))), 4),
+            "fused": mp.get("keyframes_fused"),
+            "depth_ms_p50": (mp.get("depth") or {}).get("p50_ms"),
+            "fusion_ms_p50": (mp.get("fusion") or {}).get("p50_ms"),
+            "lag_behind_s_p90": (mp.get("lag_behind_s") or {}).get("p90_s"),
+            "frontend_p99_ms_with_mesh": fe.get("p99_ms"),
+            "end_of_run_s": stats.get("end_of_run_s"),
+        }
+        if not args.no_baseline:
+            base = run_one(seq_path, args.out / f"{entry.name}-nomesh", None, extra, args.speed)
+            row["frontend_p99_ms_without_mesh"] = (
+                base.get("latency", {}).get("frontend_frame", {}).get("p99_ms")
+            )
+        row.update(mesh_scores(entry, mesh_dir, args.vis_keyframes, entry.duration_s))
+        results[entry.name] = row
+        print(entry.name, json.dumps(row), flush=True)
+    results["load_average_end"] = os.getloadavg()
+    drops = [r["dropped_fraction"] for k, r in results.items() if isinstance(r, dict)]
+    if drops:
+        results["dropped_fraction_median"] = statistics.median(drops)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "live_mesh.json").write_text(json.dumps(results, indent=2) + "\n")
+    print(json.dumps(results, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
