@@ -89,6 +89,9 @@ class BackendConfig:
     come back as variables held by a prior at their last estimated position."""
     map_landmark_sigma_m: float = bounded(0.02, gt=0)
     """Standard deviation of that prior, metres."""
+    max_map_landmarks_per_keyframe: int = bounded(100, ge=0)
+    """Of them, observations taken per keyframe at most (each is a projection factor per
+    camera, not one smart factor per landmark: this bounds the smoother's size)."""
     prior_pose_sigma_rad: float = bounded(0.01, gt=0)
     """Rotation sigma of the first/reset pose prior (yaw and position are gauge freedoms)."""
     prior_pose_sigma_m: float = bounded(0.01, gt=0)

@@ -622,6 +622,8 @@ class VioBackend:
         keyframe poses). Returns the landmark ids handled here."""
         handled: set[int] = set()
         for lid, uv_l, uv_r in _observations(kf, len(kf.landmark_ids)):
+            if len(handled) >= self.config.max_map_landmarks_per_keyframe:
+                break
             if lid in self._culled:
                 continue
             if lid in self._map_alive:
@@ -636,7 +638,9 @@ class VioBackend:
                 graph.add(gtsam.PriorFactorPoint3(L(lid), pos, self._map_prior))
                 factor_lids.append(-1)
                 new_map.add(lid)
-            stamps[L(lid)] = t
+                # stamped once: it leaves with the lag even while still seen (then comes back
+                # with a new prior); kept alive, its marginals would link ever more states
+                stamps[L(lid)] = t
             self._add_projection(graph, k, lid, uv_l, uv_r, factor_lids)
             self.stats.map_observations += 1
             handled.add(lid)
