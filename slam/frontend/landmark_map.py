@@ -106,6 +106,21 @@ class SearchParams:
     max_rms: float
 
 
+# the per-landmark arrays of a LandmarkMap, one row per landmark
+_COLUMNS = (
+    "ids",
+    "pos",
+    "refined",
+    "tracked",
+    "segment",
+    "birth_centre",
+    "pixel_step",
+    "patch",
+    "last_seen",
+    "birth_kf",
+)
+
+
 class LandmarkMap:
     """Landmarks by id: position, refined (the back end estimated it), segment, birth camera
     centre, the world displacement of one pixel along the birth image's x and y at the
@@ -146,11 +161,8 @@ class LandmarkMap:
             out[: self._n] = a[: self._n]
             return out
 
-        self.ids, self.pos, self.refined = grown(self.ids), grown(self.pos), grown(self.refined)
-        self.tracked, self.segment = grown(self.tracked), grown(self.segment)
-        self.birth_centre, self.pixel_step = grown(self.birth_centre), grown(self.pixel_step)
-        self.patch, self.last_seen = grown(self.patch), grown(self.last_seen)
-        self.birth_kf = grown(self.birth_kf)
+        for name in _COLUMNS:
+            setattr(self, name, grown(getattr(self, name)))
 
     def rows(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(found mask over ``ids``, their rows)."""
@@ -206,20 +218,8 @@ class LandmarkMap:
         )
         drop = order[: max(self._n + extra - int(0.8 * self.capacity), 0)]
         keep = np.setdiff1d(np.arange(n), drop)
-        for name in (
-            "ids",
-            "pos",
-            "refined",
-            "tracked",
-            "segment",
-            "birth_centre",
-            "pixel_step",
-            "patch",
-            "last_seen",
-            "birth_kf",
-        ):
-            arr = getattr(self, name)
-            setattr(self, name, arr[keep].copy())
+        for name in _COLUMNS:
+            setattr(self, name, getattr(self, name)[keep].copy())
         self._n = len(keep)
         self._row = {int(lid): r for r, lid in enumerate(self.ids[: self._n].tolist())}
 

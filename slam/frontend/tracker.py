@@ -448,30 +448,11 @@ class FrontEnd:
         idx = np.flatnonzero(has_lm)
         obj = np.array([self.landmarks[i] for i in self.ids[idx].tolist()])
         img = self._undistorted_px(self.px[idx])
-        cam_from_world = self.cam0_from_body @ invert_transform(pose_guess)
-        rvec, _ = cv2.Rodrigues(cam_from_world[:3, :3])
-        tvec = cam_from_world[:3, 3].reshape(3, 1).copy()
-        ok_pnp, rvec, tvec, inliers = cv2.solvePnPRansac(
-            obj,
-            img,
-            self.K,
-            None,
-            rvec,
-            tvec,
-            useExtrinsicGuess=True,
-            iterationsCount=100,
-            reprojectionError=self.cfg.pnp_reprojection_px,
-            confidence=0.999,
-            flags=cv2.SOLVEPNP_ITERATIVE,
-        )
-        n_in = 0 if inliers is None else len(inliers)
+        ok_pnp, inl, rvec, tvec = self._pnp_ransac(obj, img, pose_guess)
+        n_in = len(inl)
         if not ok_pnp or n_in < self.cfg.min_pnp_inliers:
             return self._lose(frame, t_start, f"PnP found {n_in} inliers")
-        inl = inliers.ravel()
-        rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], self.K, None, rvec, tvec)
-        rot, _ = cv2.Rodrigues(rvec)
-        cam_from_world = make_transform(rot, tvec.ravel())
-        pose = invert_transform(cam_from_world) @ self.cam0_from_body
+        pose = self._refined_pose(obj[inl], img[inl], rvec, tvec)
         self._count_landmarks(self.ids[idx[inl]])
         # drop PnP outliers from the tracks
         keep = np.ones(len(self.ids), dtype=bool)
@@ -499,6 +480,38 @@ class FrontEnd:
             num_tracked=num_tracked,
             num_inliers=n_in,
         )
+
+    def _pnp_ransac(
+        self, obj: np.ndarray, img: np.ndarray, guess_world_from_body: np.ndarray
+    ) -> tuple[bool, np.ndarray, np.ndarray, np.ndarray]:
+        """PnP RANSAC of world points ``obj`` seen at undistorted pixels ``img`` from the
+        guess: (ok, inlier rows, rvec, tvec of cam0_from_world)."""
+        cam_from_world = self.cam0_from_body @ invert_transform(guess_world_from_body)
+        rvec, _ = cv2.Rodrigues(cam_from_world[:3, :3])
+        tvec = cam_from_world[:3, 3].reshape(3, 1).copy()
+        ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+            obj,
+            img,
+            self.K,
+            None,
+            rvec,
+            tvec,
+            useExtrinsicGuess=True,
+            iterationsCount=100,
+            reprojectionError=self.cfg.pnp_reprojection_px,
+            confidence=0.999,
+            flags=cv2.SOLVEPNP_ITERATIVE,
+        )
+        inl = np.zeros(0, np.int64) if inliers is None else inliers.ravel()
+        return bool(ok), inl, rvec, tvec
+
+    def _refined_pose(
+        self, obj: np.ndarray, img: np.ndarray, rvec: np.ndarray, tvec: np.ndarray
+    ) -> np.ndarray:
+        """world_from_body from a PnP solution refined (LM) on its inliers ``obj``/``img``."""
+        rvec, tvec = cv2.solvePnPRefineLM(obj, img, self.K, None, rvec, tvec)
+        rot, _ = cv2.Rodrigues(rvec)
+        return invert_transform(make_transform(rot, tvec.ravel())) @ self.cam0_from_body
 
     def _need_keyframe(self, t_ns: int, num_inliers: int) -> bool:
         cfg = self.cfg
@@ -638,52 +651,19 @@ class FrontEnd:
                 self._undistorted_px(found.pixels),
             ]
         )
-        cam_from_world = self.cam0_from_body @ invert_transform(self.world_from_body)
-        rvec, _ = cv2.Rodrigues(cam_from_world[:3, :3])
-        tvec = cam_from_world[:3, 3].reshape(3, 1).copy()
-        ok, rvec, tvec, inliers = cv2.solvePnPRansac(
-            obj,
-            img,
-            self.K,
-            None,
-            rvec,
-            tvec,
-            useExtrinsicGuess=True,
-            iterationsCount=100,
-            reprojectionError=cfg.pnp_reprojection_px,
-            confidence=0.999,
-            flags=cv2.SOLVEPNP_ITERATIVE,
-        )
+        ok, inl, rvec, tvec = self._pnp_ransac(obj, img, self.world_from_body)
         n_tracked = len(tracked_obj)
-        inl = np.zeros(0, np.int64) if inliers is None else inliers.ravel()
         old_inl = inl[inl >= n_tracked] - n_tracked
         if not ok or len(old_inl) < cfg.map_min_inliers:
             # drifted by more than the inlier threshold: the old landmarks alone, if they are
             # many enough to fix the pose well by themselves
             obj, img = obj[n_tracked:], img[n_tracked:]
-            rvec, _ = cv2.Rodrigues(cam_from_world[:3, :3])
-            tvec = cam_from_world[:3, 3].reshape(3, 1).copy()
-            ok, rvec, tvec, inliers = cv2.solvePnPRansac(
-                obj,
-                img,
-                self.K,
-                None,
-                rvec,
-                tvec,
-                useExtrinsicGuess=True,
-                iterationsCount=100,
-                reprojectionError=cfg.pnp_reprojection_px,
-                confidence=0.999,
-                flags=cv2.SOLVEPNP_ITERATIVE,
-            )
-            inl = np.zeros(0, np.int64) if inliers is None else inliers.ravel()
+            ok, inl, rvec, tvec = self._pnp_ransac(obj, img, self.world_from_body)
             old_inl = inl
             if not ok or len(inl) < cfg.map_min_inliers_alone:
                 self.stats.map_rejected += 1
                 return
-        rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], self.K, None, rvec, tvec)
-        rot, _ = cv2.Rodrigues(rvec)
-        pose = invert_transform(make_transform(rot, tvec.ravel())) @ self.cam0_from_body
+        pose = self._refined_pose(obj[inl], img[inl], rvec, tvec)
         correction = nearest_rigid(pose @ invert_transform(self.world_from_body))
         moved_m = float(np.linalg.norm(correction[:3, 3]))
         if (
