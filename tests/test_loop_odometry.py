@@ -88,3 +88,40 @@ def test_only_keyframes_before_the_back_ends_first_are_left_out() -> None:
     assert before_first_smoothed(list(range(10)), smoothed.__contains__) == {0, 1, 2}
     assert before_first_smoothed(list(range(10)), lambda k: False) == set()
     assert before_first_smoothed([], smoothed.__contains__) == set()
+
+
+def test_keyframes_before_initialisation_follow_the_first_estimated_one() -> None:
+    """Keyframes the back end never estimated (before its initialisation) keep their visual-
+    odometry pose relative to the first one it did, and move with its estimate: as the front
+    end's belief they stayed where its first estimate put them (15 mm off on room-figure8)."""
+    from types import SimpleNamespace
+
+    from slam.core.geometry import invert_transform
+    from slam.runtime.loop import _OdometrySource
+
+    src = _OdometrySource()
+    vo = {
+        k: make_transform(so3_exp(np.array([0.0, 0.0, 0.01 * k])), [0.05 * k, 0, 0])
+        for k in range(4)
+    }
+    for k in range(4):
+        src.add_keyframe(SimpleNamespace(keyframe_id=k, world_from_body_vo=vo[k]))
+
+    def estimate(poses: dict[int, np.ndarray]) -> SimpleNamespace:
+        return SimpleNamespace(estimate=SimpleNamespace(initialized=True, keyframe_poses=poses))
+
+    assert np.array_equal(src(0), vo[0])  # nothing estimated yet: the belief
+    first = make_transform(so3_exp(np.array([0.1, 0.0, 0.0])), [1.0, 2.0, 0.5])
+    src.backend_output(estimate({2: first, 3: first @ invert_transform(vo[2]) @ vo[3]}))
+    for k in (0, 1):
+        np.testing.assert_allclose(src(k), first @ invert_transform(vo[2]) @ vo[k], atol=1e-12)
+    smoothed = make_transform(np.eye(3), [0.015, 0.0, 0.0]) @ first  # the window refines it
+    src.backend_output(estimate({2: smoothed}))
+    np.testing.assert_allclose(
+        invert_transform(src(2)) @ src(0), invert_transform(vo[2]) @ vo[0], atol=1e-12
+    )
+    np.testing.assert_allclose(
+        src(0)[:3, 3] - src(2)[:3, 3],
+        smoothed[:3, :3] @ (invert_transform(vo[2]) @ vo[0])[:3, 3],
+        atol=1e-12,
+    )

@@ -18,15 +18,27 @@ from slam.core.errors import SlamError
 from slam.core.geometry import rotation_angle_rad
 
 
-def ate_se3(seq_path: Path, trajectory: Path) -> float | None:
-    """ATE RMSE (SE3 alignment) of one trajectory file or run folder against the sequence."""
+def ate_se3(seq_path: Path, trajectory: Path, from_t_ns: int | None = None) -> float | None:
+    """ATE RMSE (SE3 alignment) of one trajectory file or run folder against the sequence.
+
+    ``from_t_ns``: the RMSE over the poses from that time on only (aligned on all of them, as
+    the whole-run figure): the part of a run after its first revisit, where a causal pose can
+    use what the loop closure found; before it, only the odometry exists.
+    """
     from slam.evaluation.evaluate import EvalOptions, ape_of, load_pair, prepare
 
     try:
         ref, est = load_pair(seq_path, trajectory, EvalOptions())
+        p = prepare(ref, est, EvalOptions(align="se3"))
     except SlamError:
         return None
-    return float(ape_of(prepare(ref, est, EvalOptions(align="se3"))).stats["rmse"])
+    res = ape_of(p)
+    if from_t_ns is None:
+        return float(res.stats["rmse"])
+    after = np.asarray(p.association.t_ns) >= from_t_ns
+    if not after.any():
+        return None
+    return float(np.sqrt(np.mean(np.square(np.asarray(res.errors)[after]))))
 
 
 def evaluate_run(seq_path: Path, run_dir: Path, artefacts: Path | None = None) -> dict[str, Any]:
@@ -163,6 +175,13 @@ def measure_run(seq_path: Path, run_dir: Path, name: str) -> dict[str, Any]:
     stats: dict[str, Any] = json.loads((run_dir / "stats.json").read_text())
     acc = evaluate_run(seq_path, run_dir, run_dir / "eval")
     acc["false_loops"] = false_loops(seq_path, stats)
+    loops = (stats.get("loop_closure") or {}).get("loops") or []
+    first = min((int(lp["query_t_ns"]) for lp in loops if lp.get("query_t_ns")), default=None)
+    if first is not None:
+        acc["ate_live_after_loop_m"] = ate_se3(seq_path, run_dir / "trajectory.tum", first)
+        closed = run_dir / "trajectory_loop_closed.tum"
+        if closed.exists():
+            acc["ate_loop_closed_after_loop_m"] = ate_se3(seq_path, closed, first)
     return summarise(name, stats, acc)
 
 
@@ -174,6 +193,8 @@ COLUMNS = (
     ("ate_odometry_m", "ATE odometry (m)", "{:.4f}"),
     ("ate_loop_closed_m", "ATE loop-closed (m)", "{:.4f}"),
     ("ate_loop_off_m", "ATE loop off (m)", "{:.4f}"),
+    ("ate_live_after_loop_m", "ATE live after 1st loop (m)", "{:.4f}"),
+    ("ate_loop_closed_after_loop_m", "ATE loop-closed after 1st loop (m)", "{:.4f}"),
     ("loop_ratio", "closed/off", "{:.2f}"),
     ("rpe_1m_m", "RPE 1 m (m)", "{:.4f}"),
     ("rpe_10m_m", "RPE 10 m (m)", "{:.4f}"),
