@@ -34,8 +34,44 @@ from typing import Any
 import numpy as np
 
 
+def render_views(verts_gt: np.ndarray, ply: Any, path: Path) -> None:
+    """A 2x2 picture of a mesh in the true world frame (z up), the upper 30 % of its height
+    cut away (the ceiling would hide the room) and back faces culled (the near walls seen
+    from outside): top row from above, bottom row from a high corner; left vertex colours,
+    right shaded geometry."""
+    import cv2
+
+    from mapping.mesh import TriangleMesh
+    from mapping.render import look_at, render_mesh
+
+    faces = np.asarray(ply.faces, np.int64)
+    normals = np.stack([ply.vertex[c] for c in ("nx", "ny", "nz")], axis=1).astype(np.float32)
+    rgb = np.stack([ply.vertex[c] for c in ("red", "green", "blue")], axis=1).astype(np.uint8)
+    lo, hi = np.percentile(verts_gt, 1, axis=0), np.percentile(verts_gt, 99, axis=0)
+    keep = np.all(verts_gt[faces][:, :, 2] < lo[2] + 0.7 * (hi[2] - lo[2]), axis=1)
+    cut = TriangleMesh(verts_gt.astype(np.float32), faces[keep], normals, rgb)
+    centre = (lo + hi) / 2
+    size = float(np.max(hi - lo))
+    w, h = 640, 480
+    k = np.array([[500.0, 0, w / 2], [0, 500.0, h / 2], [0, 0, 1]])
+    top = look_at(centre + [0.0, 0.0, 1.1 * size], centre, np.array([0.0, 1.0, 0.0]))
+    corner = look_at(centre + np.array([-0.6, -0.7, 0.7]) * size, centre, np.array([0, 0, 1.0]))
+    rows = []
+    for view in (top, corner):
+        rows.append(
+            np.concatenate(
+                [
+                    render_mesh(cut, view, k, (w, h), c, samples_per_face=6, cull_back_faces=True)
+                    for c in (True, False)
+                ],
+                axis=1,
+            )
+        )
+    cv2.imwrite(str(path), np.concatenate(rows, axis=0)[:, :, ::-1])
+
+
 def mesh_scores(
-    entry: Any, run_dir: Path, vis_keyframes: int, duration_s: float | None
+    entry: Any, run_dir: Path, vis_keyframes: int, duration_s: float | None, render: bool = False
 ) -> dict[str, Any]:
     from datasets.ply import read_ply
     from datasets.synth import make_synthetic_sequence
@@ -69,6 +105,8 @@ def mesh_scores(
 
     dist, _ = cKDTree(verts_gt).query(samples)
     acc = distance_to_scene(seq.scene, verts_gt)
+    if render:
+        render_views(verts_gt, ply, run_dir / "mesh.png")
     return {
         "vertices": len(verts),
         "accuracy_mean_m": round(float(acc.mean()), 4),
