@@ -5,8 +5,9 @@ Per suite sequence (``tools.benchmark.STANDARD_SUITE``, cached MCAPs), `slam run
 right after it, so the front end's p99 latency with and without the mapper is compared within
 one session. From the mesh run's outputs:
 
-- keyframes dropped by the mapper (``stats.json`` mapping.dropped_fraction), depth ms per
-  keyframe;
+- keyframes dropped by the mapper (``stats.json`` mapping.dropped_fraction), depth and
+  fusion wall ms per keyframe, and the mapper process's CPU ms per keyframe (what it needs of
+  a core, whatever the load);
 - mesh accuracy: mean distance (m) of the vertices to the true scene, after aligning the run's
   world to the ground truth's (SE(3) Umeyama on the keyframe positions of ``keyframes.tum``);
 - completion: share of the true surface that the keyframes saw (exact depth at up to
@@ -124,6 +125,7 @@ TABLE_COLUMNS = (
     ("fused", "fused", "{}"),
     ("depth ms p50", "depth_ms_p50", "{:.0f}"),
     ("fusion ms p50", "fusion_ms_p50", "{:.0f}"),
+    ("mapper CPU ms/kf p50", "mapper_cpu_ms_p50", "{:.0f}"),
     ("accuracy cm", "accuracy_mean_m", "{:.2f}", 100.0),
     ("completion 5 cm", "completion_5cm", "{:.1%}"),
     ("black", "black_fraction", "{:.2%}"),
@@ -183,6 +185,7 @@ def main(argv: list[str] | None = None) -> int:
             "fused": mp.get("keyframes_fused"),
             "depth_ms_p50": (mp.get("depth") or {}).get("p50_ms"),
             "fusion_ms_p50": (mp.get("fusion") or {}).get("p50_ms"),
+            "mapper_cpu_ms_p50": (mp.get("cpu_per_keyframe") or {}).get("p50_ms"),
             "lag_behind_s_p90": (mp.get("lag_behind_s") or {}).get("p90_s"),
             "frontend_p99_ms_with_mesh": fe.get("p99_ms"),
             "end_of_run_s": stats.get("end_of_run_s"),
