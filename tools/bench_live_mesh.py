@@ -12,7 +12,8 @@ one session. From the mesh run's outputs:
   world to the ground truth's (SE(3) Umeyama on the keyframe positions of ``keyframes.tum``);
 - completion: share of the true surface that the keyframes saw (exact depth at up to
   ``--vis-keyframes`` ground-truth keyframe poses) lying within 5 cm of a vertex;
-- black vertices: share with RGB all below 8 (the issue's "RGB 0,0,0", with a margin).
+- black vertices: share with RGB all below 8 (the issue's "RGB 0,0,0", with a margin);
+- a picture of the mesh in the true world frame (``SEQ-mesh/mesh.png``, see ``render_views``).
 
 At ``--speed max`` the player does not wait for the mapper, so keyframes are dropped by
 design; the mesh scores still say what the fused keyframes give. At ``--speed 1`` the drop
@@ -167,6 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-baseline", action="store_true", help="skip the run without --mesh")
     ap.add_argument("--vis-keyframes", type=int, default=60, help="keyframes for completion")
     ap.add_argument("--config", help="a config file or preset for both runs")
+    ap.add_argument("--no-render", action="store_true", help="skip the mesh.png pictures")
     args = ap.parse_args(argv)
     cache = default_cache_dir()
     results: dict[str, Any] = {"speed": args.speed, "load_average_start": os.getloadavg()}
@@ -195,7 +197,9 @@ def main(argv: list[str] | None = None) -> int:
             row["frontend_p99_ms_without_mesh"] = (
                 base.get("latency", {}).get("frontend_frame", {}).get("p99_ms")
             )
-        row.update(mesh_scores(entry, mesh_dir, args.vis_keyframes, entry.duration_s))
+        row.update(
+            mesh_scores(entry, mesh_dir, args.vis_keyframes, entry.duration_s, not args.no_render)
+        )
         results[entry.name] = row
         print(entry.name, json.dumps(row), flush=True)
     results["load_average_end"] = os.getloadavg()
