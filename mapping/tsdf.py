@@ -273,7 +273,7 @@ class TsdfVolume:
                 import numba
 
                 numba.set_num_threads(min(self.config.threads, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
-            depth_flat, weight_flat = flat_depth_and_weight(
+            depth_nb, weight_nb = flat_depth_and_weight(
                 depth,
                 cfg.min_depth_m,
                 cfg.max_depth_m,
@@ -284,9 +284,9 @@ class TsdfVolume:
                 self._block_origins_k(slots, k_rot, k_trans),
                 np.ascontiguousarray(local.T),
                 w,
-                depth_flat,
+                depth_nb,
                 np.zeros(0, np.uint8) if color_img is None else color_img.reshape(-1),
-                weight_flat,
+                weight_nb,
                 np.float32(weight),
                 np.float32(cfg.trunc_m),
                 np.float32(cfg.min_depth_m),
@@ -302,7 +302,7 @@ class TsdfVolume:
         depth_flat[:-1] = np.nan_to_num(depth.ravel(), nan=0.0)
         depth_flat[(depth_flat < cfg.min_depth_m) | (depth_flat > cfg.max_depth_m)] = 0.0
         color_flat = None if color_img is None else color_img.reshape(-1, 3)
-        weight_flat = None
+        weight_flat: np.ndarray | None = None
         if wmap is not None:
             weight_flat = np.zeros(h * w + 1, dtype=np.float32)
             weight_flat[:-1] = wmap.ravel()

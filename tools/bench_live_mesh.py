@@ -57,7 +57,7 @@ def render_views(verts_gt: np.ndarray, ply: Any, path: Path) -> None:
     w, h = 640, 480
     k = np.array([[500.0, 0, w / 2], [0, 500.0, h / 2], [0, 0, 1]])
     top = look_at(centre + [0.0, 0.0, 1.1 * size], centre, np.array([0.0, 1.0, 0.0]))
-    corner = look_at(centre + np.array([-0.6, -0.7, 0.7]) * size, centre, np.array([0, 0, 1.0]))
+    corner = look_at(centre + np.array([-0.8, -0.9, 0.9]) * size, centre, np.array([0, 0, 1.0]))
     rows = []
     for view in (top, corner):
         rows.append(
