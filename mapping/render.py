@@ -33,17 +33,24 @@ def render_mesh(
     size_wh: tuple[int, int] = (960, 720),
     use_colors: bool = True,
     samples_per_face: int = 6,
+    cull_back_faces: bool = False,
 ) -> np.ndarray:
-    """Render to an (H, W, 3) uint8 RGB image (white background)."""
+    """Render to an (H, W, 3) uint8 RGB image (white background). ``cull_back_faces``: leave
+    out faces whose vertex normals point away from the camera (e.g. the outside of a room's
+    near walls, seen from outside)."""
     w, h = size_wh
     img = np.full((h, w, 3), 255, np.uint8)
-    if mesh.num_faces == 0:
+    f = mesh.faces.astype(np.int64)
+    v = mesh.vertices_m.astype(np.float64)
+    if cull_back_faces and len(f):
+        centre = v[f].mean(axis=1)
+        normal = mesh.normals[f].astype(np.float64).sum(axis=1)
+        f = f[np.sum(normal * (world_from_cam[:3, 3] - centre), axis=1) > 0]
+    if len(f) == 0:
         return img
     rng = np.random.default_rng(0)
     bary = rng.dirichlet(np.ones(3), size=samples_per_face)
     bary = np.concatenate([np.eye(3), bary, np.full((1, 3), 1 / 3)])  # (S, 3)
-    f = mesh.faces.astype(np.int64)
-    v = mesh.vertices_m.astype(np.float64)
     pts = np.einsum("sk,mkd->msd", bary, v[f]).reshape(-1, 3)
     nrm = np.einsum("sk,mkd->msd", bary, mesh.normals[f].astype(np.float64)).reshape(-1, 3)
     cam_from_world = np.linalg.inv(world_from_cam)

@@ -21,8 +21,9 @@ de-integrate a keyframe with its old pose, integrate it with the new one. A voxe
 weight 0; colour 0 with colour weight 0) instead of dividing by what is left.
 
 The update loop runs compiled with numba when it is installed (``mapping.tsdf_numba``, the
-``fast`` extra, ~2-3x faster: BENCHMARKS.md), else as the vectorised numpy below; ``TsdfConfig.kernel`` picks
-one. Both do the same arithmetic.
+``fast`` extra, ~5x faster: BENCHMARKS.md), else as the vectorised numpy below;
+``TsdfConfig.kernel`` picks one. Both do the same float32 arithmetic in the same order and
+give the same volume bit for bit (tested).
 """
 
 from __future__ import annotations
@@ -205,7 +206,7 @@ class TsdfVolume:
                 cfg.min_depth_m,
                 cfg.max_depth_m,
             )
-            return np.unique(found)
+            return found  # sorted, unique
         d = np.nan_to_num(depth_m[::s, ::s].astype(np.float32), nan=0.0)
         v, u = np.nonzero((d > cfg.min_depth_m) & (d < cfg.max_depth_m))
         z = d[v, u].astype(np.float64)  # float64 as the compiled version: the same blocks
@@ -255,31 +256,42 @@ class TsdfVolume:
         cam_from_world = np.linalg.inv(world_from_cam)
         k_rot = (K @ cam_from_world[:3, :3]).astype(np.float32)
         k_trans = (K @ cam_from_world[:3, 3]).astype(np.float32)
+        # Image-plane homogeneous coordinates K (R p + t) of every voxel, as the block's
+        # origin term plus a local term. Written out elementwise (not a matrix product, whose
+        # summation order BLAS picks by size) so both loops get the same float32 values.
+        local = _times_k_rot(self._local_m, k_rot, np.zeros(3, np.float32))  # (B^3, 3)
         color_img = None if color is None else np.ascontiguousarray(color, dtype=np.uint8)
         if color_img is not None and color_img.shape[:2] != (h, w):
             raise ValueError(f"colour image {color_img.shape[:2]} differs from depth {(h, w)}")
         wmap = None if weight_map is None else np.ascontiguousarray(weight_map, np.float32)
+        if wmap is not None and wmap.shape != (h, w):
+            raise ValueError(f"weight map {wmap.shape} differs from depth {(h, w)}")
         if self._kernel is not None:
+            from mapping.tsdf_numba import flat_depth_and_weight
+
             if self.config.threads > 1:
                 import numba
 
                 numba.set_num_threads(min(self.config.threads, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
+            depth_nb, weight_nb = flat_depth_and_weight(
+                depth,
+                cfg.min_depth_m,
+                cfg.max_depth_m,
+                np.zeros((0, 0), np.float32) if wmap is None else wmap,
+            )
             n_upd = self._kernel(
                 slots,
-                self._block_xyz,
-                cfg.block_size,
-                cfg.voxel_m,
-                k_rot,
-                k_trans,
-                depth,
-                np.zeros((0, 0, 3), np.uint8) if color_img is None else color_img,
-                np.zeros((0, 0), np.float32) if wmap is None else wmap,
-                float(weight),
-                float(cfg.trunc_m),
-                float(cfg.min_depth_m),
-                float(cfg.max_depth_m),
-                -1.0 if cfg.max_weight is None else float(cfg.max_weight),
-                MIN_WEIGHT,
+                self._block_origins_k(slots, k_rot, k_trans),
+                np.ascontiguousarray(local.T),
+                w,
+                depth_nb,
+                np.zeros(0, np.uint8) if color_img is None else color_img.reshape(-1),
+                weight_nb,
+                np.float32(weight),
+                np.float32(cfg.trunc_m),
+                np.float32(cfg.min_depth_m),
+                np.float32(-1.0 if cfg.max_weight is None else cfg.max_weight),
+                np.float32(MIN_WEIGHT),
                 self.tsdf,
                 self.weight,
                 self.color_x256,
@@ -290,17 +302,18 @@ class TsdfVolume:
         depth_flat[:-1] = np.nan_to_num(depth.ravel(), nan=0.0)
         depth_flat[(depth_flat < cfg.min_depth_m) | (depth_flat > cfg.max_depth_m)] = 0.0
         color_flat = None if color_img is None else color_img.reshape(-1, 3)
-        weight_flat = None
+        weight_flat: np.ndarray | None = None
         if wmap is not None:
             weight_flat = np.zeros(h * w + 1, dtype=np.float32)
             weight_flat[:-1] = wmap.ravel()
         # Chunks of blocks keep every temporary in cache (~64k voxels): 2-3x faster than one pass.
         n_upd = 0
         for c0 in range(0, len(slots), self.chunk_blocks):
+            chunk = slots[c0 : c0 + self.chunk_blocks]
             n_upd += self._integrate_blocks(
-                slots[c0 : c0 + self.chunk_blocks],
-                k_rot,
-                k_trans,
+                chunk,
+                self._block_origins_k(chunk, k_rot, k_trans),
+                local,
                 depth_flat,
                 (h, w),
                 color_flat,
@@ -309,11 +322,16 @@ class TsdfVolume:
             )
         return IntegrationStats(len(slots), n_new, n_upd)
 
+    def _block_origins_k(self, slots: np.ndarray, k_rot: np.ndarray, k_trans: np.ndarray):
+        """(Nb, 3) float32 K (R o + t) of the origins o of the given blocks."""
+        block_m = self.config.voxel_m * self.config.block_size
+        return _times_k_rot((self._block_xyz[slots] * block_m).astype(np.float32), k_rot, k_trans)
+
     def _integrate_blocks(
         self,
         slots: np.ndarray,
-        k_rot: np.ndarray,
-        k_trans: np.ndarray,
+        origins: np.ndarray,
+        local: np.ndarray,
         depth_flat: np.ndarray,
         hw: tuple[int, int],
         color_flat: np.ndarray | None,
@@ -324,11 +342,7 @@ class TsdfVolume:
         arithmetic as one compiled loop); returns the voxels updated."""
         cfg = self.config
         h, w = hw
-        # Image-plane homogeneous coordinates K (R p + t) of every voxel, assembled per block as
-        # origin term + local term so no (Nb * B^3, 3) matrix product is needed.
-        block_m = cfg.voxel_m * cfg.block_size
-        origins = (self._block_xyz[slots] * block_m).astype(np.float32) @ k_rot.T + k_trans
-        local = self._local_m @ k_rot.T  # (B^3, 3)
+        # origins (Nb, 3) and local (B^3, 3): see integrate().
         zc = origins[:, 2:3] + local[None, :, 2]  # (Nb, B^3) depth along the optical axis
         inv_z = np.float32(1.0) / np.maximum(zc, np.float32(cfg.min_depth_m))
         u = (origins[:, 0:1] + local[None, :, 0]) * inv_z
@@ -451,6 +465,14 @@ class TsdfVolume:
             + self.color_x256[:n].nbytes
             + self.color_weight[:n].nbytes
         )
+
+
+def _times_k_rot(p: np.ndarray, k_rot: np.ndarray, k_trans: np.ndarray) -> np.ndarray:
+    """(N, 3) float32 ``k_rot @ p + k_trans`` per row, summed in a fixed order."""
+    out = p[:, 0:1] * k_rot[:, 0] + p[:, 1:2] * k_rot[:, 1]
+    out += p[:, 2:3] * k_rot[:, 2]
+    out += k_trans
+    return np.ascontiguousarray(out, dtype=np.float32)
 
 
 def numba_available() -> bool:

@@ -69,10 +69,14 @@ def test_stage_reports_lag_and_drops(threaded):
     assert stats["keeps_up"] == (stats["keyframes_dropped_lag"] == 0)
     if threaded:  # the burst overflows a backlog of one keyframe
         assert stats["keyframes_dropped_lag"] >= 1 and not stats["keeps_up"]
+        # The worker process's CPU per fused keyframe (depth + fusion take some).
+        assert stats["cpu_per_keyframe"]["count"] == stats["keyframes_fused"]
+        assert stats["cpu_per_keyframe"]["p50_ms"] > 0
         assert stats["dropped_fraction"] == stats["keyframes_dropped_lag"] / len(kfs)
     else:  # in-process: every keyframe is mapped before the next, never behind
         assert stats["keyframes_dropped_lag"] == 0
         assert stats["lag_behind_s"]["max_s"] == 0.0
+        assert stats["cpu_per_keyframe"] is None  # the process's CPU is not the mapper's alone
 
 
 def test_loop_correction_moves_the_map_during_the_run():

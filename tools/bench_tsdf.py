@@ -8,13 +8,17 @@ median over passes of the per-pass median wall time per integration (all passes 
 median CPU time (which other processes on a shared machine disturb less), and the size of the
 mesh each volume gives (an integration that fuses nothing is fast, so check it).
 
-``--baseline FILE``: also time the ``TsdfVolume`` of another version of ``mapping/tsdf.py``
-(before/after within one session), e.g.
+``--baseline-tree DIR``: also time the volume of another version of the code (before/after
+within one session): each pass runs this file as a script in a child process with
+``PYTHONPATH=DIR``, so ``mapping`` (and its numba loop) come from there, e.g.
 
-    git show e702246:mapping/tsdf.py > /tmp/tsdf_before.py
-    .venv/bin/python -m tools.bench_tsdf --baseline /tmp/tsdf_before.py
+    mkdir /tmp/before && git archive ed765cf mapping datasets slam | tar -x -C /tmp/before
+    .venv/bin/python -m tools.bench_tsdf --baseline-tree /tmp/before
 
     .venv/bin/python -m tools.bench_tsdf [--frames 40] [--repeats 3] [--voxel 0.01]
+
+The machine is usually shared: CPU time (``process_time``: all threads of this process) is
+reported beside wall time, with the load average at start and end.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import importlib
 import json
 import os
 import statistics
+import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -72,22 +77,26 @@ def _ours(
     )
 
 
-def _baseline(path: Path, frames: list, K: np.ndarray, voxel_m: float) -> dict[str, float]:
-    import importlib.util
+def _baseline_tree(
+    tree: Path, kernel: str, n_frames: int, voxel_m: float, threads: int = 1
+) -> dict[str, float]:
+    """One pass of ``_ours`` with the code under ``tree`` (a child process; see the module
+    docstring)."""
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--one", kernel, "--threads"]
+    cmd += [str(threads), "--frames", str(n_frames), "--voxel", str(voxel_m)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, check=False)
+    if proc.returncode != 0:
+        raise RuntimeError(f"baseline pass failed: {proc.stderr.strip()[-500:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
 
-    from mapping.mesh import TriangleMesh
 
-    spec = importlib.util.spec_from_file_location("tsdf_baseline", path)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["tsdf_baseline"] = mod  # dataclasses look their module up
-    spec.loader.exec_module(mod)
-    vol = mod.TsdfVolume(mod.TsdfConfig(voxel_m=voxel_m, truncation_m=4 * voxel_m, max_depth_m=4.0))
-    return _timed_pass(
-        lambda fr: vol.integrate(fr.depth_m, K, fr.world_from_cam, fr.color_rgb),
-        frames,
-        lambda: int(TriangleMesh.empty().num_vertices + vol.observed_voxel_count() > 0),
-    )
+def _frames(n_frames: int) -> tuple[list, np.ndarray]:
+    from datasets.rgbd_folder import RgbdFolder
+
+    folder = RgbdFolder(DATA / "7scenes_rgbd_400")
+    ids = np.linspace(0, len(folder) - 1, n_frames).round().astype(int)
+    return [folder.frame(int(i)) for i in ids], folder.K
 
 
 def _open3d_tensor(o3d: Any, frames: list, K: np.ndarray, voxel_m: float) -> dict[str, float]:
@@ -138,28 +147,31 @@ def _open3d_scalable(o3d: Any, frames: list, K: np.ndarray, voxel_m: float) -> d
 
 
 def run(
-    n_frames: int, repeats: int, voxel_m: float, baseline: Path | None = None
+    n_frames: int, repeats: int, voxel_m: float, baseline_tree: Path | None = None
 ) -> dict[str, Any]:
-    from datasets.rgbd_folder import RgbdFolder
     from mapping.tsdf import numba_available
 
-    folder = RgbdFolder(DATA / "7scenes_rgbd_400")
-    ids = np.linspace(0, len(folder) - 1, n_frames).round().astype(int)
-    frames = [folder.frame(int(i)) for i in ids]
+    frames, K = _frames(n_frames)
     backends: dict[str, Callable[[], dict[str, float]]] = {}
-    if baseline is not None:
-        backends["baseline"] = lambda: _baseline(baseline, frames, folder.K, voxel_m)
     if numba_available():
-        backends["ours_numba"] = lambda: _ours("numba", frames, folder.K, voxel_m)
-        backends["ours_numba_2threads"] = lambda: _ours("numba", frames, folder.K, voxel_m, 2)
-    backends["ours_numpy"] = lambda: _ours("numpy", frames, folder.K, voxel_m)
+        backends["ours_numba"] = lambda: _ours("numba", frames, K, voxel_m)
+        backends["ours_numba_2threads"] = lambda: _ours("numba", frames, K, voxel_m, 2)
+        if baseline_tree is not None:
+            backends["baseline_numba"] = lambda: _baseline_tree(
+                baseline_tree, "numba", n_frames, voxel_m
+            )
+    backends["ours_numpy"] = lambda: _ours("numpy", frames, K, voxel_m)
+    if baseline_tree is not None:
+        backends["baseline_numpy"] = lambda: _baseline_tree(
+            baseline_tree, "numpy", n_frames, voxel_m
+        )
     try:
         o3d: Any = importlib.import_module("open3d")  # optional: the `mesh` extra
     except ImportError:
         o3d = None
     if o3d is not None:
-        backends["open3d_voxelblockgrid"] = lambda: _open3d_tensor(o3d, frames, folder.K, voxel_m)
-        backends["open3d_scalable"] = lambda: _open3d_scalable(o3d, frames, folder.K, voxel_m)
+        backends["open3d_voxelblockgrid"] = lambda: _open3d_tensor(o3d, frames, K, voxel_m)
+        backends["open3d_scalable"] = lambda: _open3d_scalable(o3d, frames, K, voxel_m)
     out: dict[str, Any] = {
         "frames": len(frames),
         "image": [int(frames[0].depth_m.shape[1]), int(frames[0].depth_m.shape[0])],
@@ -188,10 +200,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=40, help="frames spread over the 400 (40)")
     ap.add_argument("--repeats", type=int, default=3, help="passes; median of them (3)")
     ap.add_argument("--voxel", type=float, default=0.01, help="voxel size, m (0.01)")
-    ap.add_argument("--baseline", type=Path, help="another mapping/tsdf.py to time too")
+    ap.add_argument("--baseline-tree", type=Path, help="a source tree of the code before")
     ap.add_argument("--json", type=Path, help="write the figures here too")
+    ap.add_argument("--one", choices=("numba", "numpy"), help=argparse.SUPPRESS)  # child pass
+    ap.add_argument("--threads", type=int, default=1, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
-    out = run(args.frames, args.repeats, args.voxel, args.baseline)
+    if args.one:
+        frames, K = _frames(args.frames)
+        print(json.dumps(_ours(args.one, frames, K, args.voxel, args.threads)))
+        return 0
+    out = run(args.frames, args.repeats, args.voxel, args.baseline_tree)
     text = json.dumps(out, indent=2)
     print(text)
     if args.json:
@@ -200,4 +218,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    if __package__ in (None, ""):  # run as a script (a baseline pass): the tree's packages
+        sys.path[:0] = [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
     raise SystemExit(main())

@@ -233,6 +233,7 @@ class MapperReport:
     fusion_ms: float
     blocks: int  # allocated TSDF voxel blocks
     reintegrated: int = 0  # keyframes re-integrated at loop-corrected poses after this one
+    cpu_ms: float = 0.0  # CPU time of the mapper's process (all threads) for all of it
 
 
 @dataclass(frozen=True, eq=False)

@@ -95,6 +95,7 @@ def _add(
 ) -> MapperReport:
     """Fuse a keyframe, then re-integrate up to ``n_moves`` keyframes of ``pending`` (oldest
     correction first; taken out of it)."""
+    cpu0 = time.process_time()
     r = mapper.add_keyframe(
         item.t_ns,
         item.image_left,
@@ -106,7 +107,8 @@ def _add(
     if pending and n_moves > 0:
         batch = {t: pending.pop(t) for t in list(pending)[:n_moves]}
         moved = mapper.update_poses(batch)
-    return MapperReport(r.t_ns, r.skipped, r.depth_ms, r.fusion_ms, r.blocks, moved)
+    cpu_ms = 1e3 * (time.process_time() - cpu0)
+    return MapperReport(r.t_ns, r.skipped, r.depth_ms, r.fusion_ms, r.blocks, moved, cpu_ms)
 
 
 def _finish(mapper: Any, request: MapFinish) -> tuple[MapperSummary, MeshSnapshot | None]:
@@ -337,6 +339,11 @@ class MapperStage(ProcessStage):
             "max_lag_s": self.max_lag_s,
             "depth": latency_summary([r.depth_ms for r in fused]),
             "fusion": latency_summary([r.fusion_ms for r in fused]),
+            # CPU per fused keyframe (depth, fusion, re-integrations): only the worker process
+            # measures the mapper alone.
+            "cpu_per_keyframe": (
+                latency_summary([r.cpu_ms for r in fused]) if self.use_process else None
+            ),
             "final_reintegrated": self.summary.reintegrated,
             "final_ms": self.summary.final_ms,
             "mesh_vertices": self.summary.vertices,
