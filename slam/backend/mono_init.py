@@ -1,0 +1,187 @@
+"""Visual-inertial alignment of a monocular start: metric scale, gravity, velocities, gyro bias.
+
+The monocular front end's keyframe poses (``Keyframe.world_from_body_vo``) come from two-view
+structure from motion and PnP: right up to an unknown scale ``s`` (its first baseline was a
+guess) and an unknown orientation of gravity. VINS-Mono's linear alignment (Qin et al., 2018,
+section V-B) recovers them from the IMU preintegrated between the keyframes (GTSAM's
+``PreintegratedCombinedMeasurements``, through :mod:`slam.backend.imu`):
+
+1. gyro bias: the relative rotations of consecutive keyframes against the preintegrated ones
+   (:func:`slam.backend.init.estimate_gyro_bias`, shared with the stereo moving start);
+2. velocities ``v_k`` (VO frame, metric), gravity ``g`` (VO frame) and ``s`` by linear least
+   squares. The VO positions are of the *body*, computed by the front end from camera centres
+   at VO scale with the metric camera-IMU lever arm ``t_bc``; the camera centres
+   ``c_k = p_k + R_k t_bc`` are what scales, so the metric body position is
+   ``s c_k - R_k t_bc``. Per interval i -> j (``dt``, preintegrated ``dp``, ``dv``):
+
+       s (c_j - c_i) - v_i dt - 1/2 g dt^2 = R_i dp + (R_j - R_i) t_bc
+       v_j - v_i - g dt                    = R_i dv
+
+3. gravity refined on its sphere (``|g|`` known): a 2-DoF tangent update re-solved a few times
+   with ``s`` and the velocities (the accelerometer bias is left to the smoother, as VINS-Mono).
+
+Checks that reject an alignment (the caller waits for more keyframes and tries again): a
+non-positive scale, ``|g|`` of the free solution far from the known one, and a scale that the
+first two thirds of the keyframes alone do not reproduce (weak excitation makes the scale
+ill-determined long before it makes the residual large).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from slam.backend.imu import integrate_pieces, integration_pieces, make_bias, preintegration_params
+from slam.backend.init import estimate_gyro_bias
+from slam.core.calibration import ImuCalibration
+
+
+@dataclass(frozen=True, eq=False)
+class MonoAlignment:
+    """The result of :func:`align_mono`; ``accepted`` False with a ``reason`` when a check failed."""
+
+    accepted: bool
+    reason: str
+    scale: float
+    """Metric metres per VO unit (camera centres scale by it)."""
+    gravity_vo_m_s2: np.ndarray
+    """(3,) gravity (pointing down, magnitude |g|) in the VO frame."""
+    velocities_vo_m_s: np.ndarray
+    """(K, 3) metric body velocity of each keyframe, VO frame orientation."""
+    bias_gyro_rad_s: np.ndarray
+    gravity_norm_free_m_s2: float
+    """|g| of the unconstrained linear solution (a health check)."""
+    scale_subset: float
+    """The scale from the first two thirds of the keyframes alone (a consistency check)."""
+
+
+def _preintegrated(
+    params: gtsam.PreintegrationCombinedParams,
+    pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    bias_gyro: np.ndarray,
+) -> list[tuple[float, np.ndarray, np.ndarray]]:
+    """(dt, dp, dv) of every interval, preintegrated about the gyro bias (accel bias 0)."""
+    out = []
+    bias = make_bias(bias_gyro, np.zeros(3))
+    for p in pieces:
+        pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
+        integrate_pieces(pim, p)
+        out.append((pim.deltaTij(), np.asarray(pim.deltaPij()), np.asarray(pim.deltaVij())))
+    return out
+
+
+def _solve(
+    deltas: list[tuple[float, np.ndarray, np.ndarray]],
+    rot: np.ndarray,
+    centres: np.ndarray,
+    lever_m: np.ndarray,
+    gravity_m_s2: float,
+    gravity_dir: np.ndarray | None,
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least squares of the module docstring's equations over keyframes 0..len(deltas).
+    ``gravity_dir`` None: g free (3 unknowns); else ``|g| dir + basis w`` (2 unknowns).
+    Returns (s, g, v (K, 3))."""
+    k_count = len(deltas) + 1
+    n_v = 3 * k_count
+    n_g = 3 if gravity_dir is None else 2
+    n = n_v + n_g + 1
+    a_rows, b_rows = [], []
+    g0 = np.zeros(3)
+    basis = np.zeros((3, 2))
+    if gravity_dir is not None:
+        g0 = gravity_m_s2 * gravity_dir
+        basis = np.linalg.svd(gravity_dir.reshape(1, 3))[2][1:].T * gravity_m_s2
+    for i, (dt, dp, dv) in enumerate(deltas):
+        j = i + 1
+        ap = np.zeros((3, n))
+        ap[:, 3 * i : 3 * i + 3] = -dt * np.eye(3)
+        ap[:, n - 1] = centres[j] - centres[i]
+        bp = rot[i] @ dp + (rot[j] - rot[i]) @ lever_m
+        av = np.zeros((3, n))
+        av[:, 3 * i : 3 * i + 3] = -np.eye(3)
+        av[:, 3 * j : 3 * j + 3] = np.eye(3)
+        bv = rot[i] @ dv
+        if gravity_dir is None:
+            ap[:, n_v : n_v + 3] = -0.5 * dt * dt * np.eye(3)
+            av[:, n_v : n_v + 3] = -dt * np.eye(3)
+        else:
+            ap[:, n_v : n_v + 2] = -0.5 * dt * dt * basis
+            bp = bp + 0.5 * dt * dt * g0
+            av[:, n_v : n_v + 2] = -dt * basis
+            bv = bv + dt * g0
+        # position rows in metres over ~dt, velocity rows in m/s: weigh them alike per second
+        a_rows += [ap / max(dt, 1e-3), av]
+        b_rows += [bp / max(dt, 1e-3), bv]
+    x = np.linalg.lstsq(np.vstack(a_rows), np.concatenate(b_rows), rcond=None)[0]
+    v = x[:n_v].reshape(k_count, 3)
+    g = x[n_v : n_v + 3] if gravity_dir is None else g0 + basis @ x[n_v : n_v + 2]
+    return float(x[n - 1]), g, v
+
+
+def align_mono(
+    t_kf_ns: np.ndarray,
+    world_from_body_vo: np.ndarray,
+    body_from_cam0: np.ndarray,
+    imu_t_ns: np.ndarray,
+    imu_gyro_rad_s: np.ndarray,
+    imu_accel_m_s2: np.ndarray,
+    imu: ImuCalibration,
+    imu_gap_max_s: float,
+    max_gravity_error_m_s2: float,
+    max_scale_disagreement: float,
+) -> MonoAlignment | None:
+    """Align K >= 4 up-to-scale keyframe poses with the IMU (module docstring). None when the
+    IMU does not cover every interval; else a :class:`MonoAlignment`, accepted or not."""
+    k_count = len(t_kf_ns)
+    if k_count < 4:
+        return None
+    params = preintegration_params(imu)
+    pieces = []
+    for i in range(k_count - 1):
+        p = integration_pieces(
+            imu_t_ns, imu_gyro_rad_s, imu_accel_m_s2, int(t_kf_ns[i]), int(t_kf_ns[i + 1]),
+            imu_gap_max_s,
+        )  # fmt: skip
+        if p is None:
+            return None
+        pieces.append(p)
+    rot = world_from_body_vo[:, :3, :3]
+    lever_m = np.asarray(body_from_cam0, float)[:3, 3]
+    centres = world_from_body_vo[:, :3, 3] + rot @ lever_m
+    bias_gyro, _ = estimate_gyro_bias(params, pieces, rot)
+    deltas = _preintegrated(params, pieces, bias_gyro)
+    g_norm = imu.gravity_m_s2
+    _, g_free, _ = _solve(deltas, rot, centres, lever_m, g_norm, None)
+    g_free_norm = float(np.linalg.norm(g_free))
+
+    def refined(part: list[tuple[float, np.ndarray, np.ndarray]]) -> tuple[float, np.ndarray, Any]:
+        g_dir = g_free / max(g_free_norm, 1e-9)
+        s, g, v = 0.0, g_free, np.zeros((len(part) + 1, 3))
+        for _ in range(4):
+            s, g, v = _solve(part, rot, centres, lever_m, g_norm, g_dir)
+            g_dir = g / np.linalg.norm(g)
+        return s, g_dir * g_norm, v
+
+    scale, gravity, vel = refined(deltas)
+    sub = max(3, (2 * len(deltas)) // 3)
+    scale_sub = refined(deltas[:sub])[0] if sub < len(deltas) else scale
+    reason = ""
+    if not np.isfinite(g_free_norm) or abs(g_free_norm - g_norm) > max_gravity_error_m_s2:
+        reason = f"|g| {g_free_norm:.2f} m/s^2 from the free solution"
+    elif not (np.isfinite(scale) and scale > 0):
+        reason = f"scale {scale:.3g} not positive"
+    elif not (scale_sub > 0 and abs(scale_sub / scale - 1.0) <= max_scale_disagreement):
+        reason = f"scale {scale:.3f} not reproduced by the first keyframes ({scale_sub:.3f})"
+    return MonoAlignment(
+        accepted=not reason,
+        reason=reason,
+        scale=scale,
+        gravity_vo_m_s2=gravity,
+        velocities_vo_m_s=vel,
+        bias_gyro_rad_s=bias_gyro,
+        gravity_norm_free_m_s2=g_free_norm,
+        scale_subset=scale_sub,
+    )
