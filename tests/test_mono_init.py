@@ -18,7 +18,9 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 def _align(world, kfs, vo_units_per_m: float):
     body_from_cam0 = world.calibration.cameras[0].body_from_cam
-    poses = np.array([scale_body_pose(k.world_from_body_vo, vo_units_per_m, body_from_cam0) for k in kfs])
+    poses = np.array(
+        [scale_body_pose(k.world_from_body_vo, vo_units_per_m, body_from_cam0) for k in kfs]
+    )
     imu = world.imu.arrays
     return align_mono(
         np.array([k.t_ns for k in kfs]),

@@ -133,7 +133,10 @@ def handle(args: argparse.Namespace) -> int:
     # the input is opened and the configuration checked before --out is made: a bad input or
     # configuration leaves nothing behind
     seq = open_sequence(args.seq, **source_options(args), strict=args.strict)
-    default_preset = "euroc-stereo-imu" if seq.num_imu else "stereo-vo"
+    if not seq.calibration.is_stereo and seq.num_imu:
+        default_preset = "euroc-mono-imu"  # one camera: cam0 + IMU
+    else:
+        default_preset = "euroc-stereo-imu" if seq.num_imu else "stereo-vo"
     cfg = load_config(args.config, default_preset)
     if args.speed is not None:
         cfg.player.speed = parse_speed(args.speed)
@@ -146,8 +149,13 @@ def handle(args: argparse.Namespace) -> int:
 
         cfg.mapping = dataclasses.replace(cfg.mapping, enabled=True)
     validate_config(cfg)  # with the command line's overrides
-    if not seq.calibration.is_stereo:
-        raise SlamError(f"{seq.name}: the pipeline needs a stereo sequence (cam0 and cam1)")
+    if not seq.calibration.is_stereo and not cfg.monocular:
+        raise SlamError(
+            f"{seq.name}: one camera: the stereo pipeline needs cam0 and cam1; "
+            "use --config euroc-mono-imu (cam0 + IMU)"
+        )
+    if cfg.monocular and not seq.num_imu:
+        raise SlamError(f"{seq.name}: the monocular preset needs an IMU (it fixes the scale)")
     try:  # fail before the run, not after it, when the folder cannot be made
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
