@@ -20,6 +20,11 @@ section V-B) recovers them from the IMU preintegrated between the keyframes (GTS
 3. gravity refined on its sphere (``|g|`` known): a 2-DoF tangent update re-solved a few times
    with ``s`` and the velocities (the accelerometer bias is left to the smoother, as VINS-Mono).
 
+Before the alignment the keyframe poses are refined by a small bundle adjustment
+(:func:`refine_vo_poses`: GTSAM Levenberg-Marquardt over the keyframes' observations, the
+first pose held, Huber projection factors): tracked frame to frame by PnP, a monocular map's
+scale drifts by a few per cent per second, which the alignment would read as acceleration.
+
 Checks that reject an alignment (the caller waits for more keyframes and tries again): a
 non-positive scale, ``|g|`` of the free solution far from the known one, and a scale that the
 first two thirds of the keyframes alone do not reproduce (weak excitation makes the scale
@@ -119,6 +124,95 @@ def _solve(
     v = x[:n_v].reshape(k_count, 3)
     g = x[n_v : n_v + 3] if gravity_dir is None else g0 + basis @ x[n_v : n_v + 2]
     return float(x[n - 1]), g, v
+
+
+def refine_vo_poses(
+    world_from_body_vo: np.ndarray,
+    observations: list[tuple[np.ndarray, np.ndarray]],
+    points_vo: dict[int, np.ndarray],
+    intrinsics_k: np.ndarray,
+    body_from_cam0: np.ndarray,
+    pixel_sigma_px: float = 1.0,
+    iterations: int = 15,
+) -> np.ndarray:
+    """Bundle adjustment of up-to-scale keyframe poses (K, 4, 4) and the landmarks they share.
+
+    ``observations[k]``: (landmark ids (N,), undistorted pixels (N, 2)) of keyframe k;
+    ``points_vo``: a starting position per landmark id. Landmarks seen by fewer than two
+    keyframes are left out. The first pose is held by a tight prior and the last one's
+    position by a loose one (the scale gauge; the alignment finds the metric scale). Returns
+    the refined poses at the input's scale (the camera centres' spread from the first one
+    kept), or the input when the problem is too small or the solver fails."""
+    counts: dict[int, int] = {}
+    for ids, _ in observations:
+        for lid in ids.tolist():
+            counts[lid] = counts.get(lid, 0) + 1
+    used = {lid for lid, c in counts.items() if c >= 2 and lid in points_vo}
+    k_count = len(world_from_body_vo)
+    if len(used) < 20 or k_count < 2:
+        return world_from_body_vo
+    cal = gtsam.Cal3_S2(
+        intrinsics_k[0, 0], intrinsics_k[1, 1], 0.0, intrinsics_k[0, 2], intrinsics_k[1, 2]
+    )
+    body_p_cam = gtsam.Pose3(np.asarray(body_from_cam0, float))
+    noise = gtsam.noiseModel.Robust.Create(
+        gtsam.noiseModel.mEstimator.Huber.Create(1.345),
+        gtsam.noiseModel.Isotropic.Sigma(2, pixel_sigma_px),
+    )
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    span = float(np.linalg.norm(world_from_body_vo[-1, :3, 3] - world_from_body_vo[0, :3, 3]))
+    for k in range(k_count):
+        values.insert(gtsam.symbol("x", k), gtsam.Pose3(world_from_body_vo[k]))
+    graph.add(
+        gtsam.PriorFactorPose3(
+            gtsam.symbol("x", 0),
+            gtsam.Pose3(world_from_body_vo[0]),
+            gtsam.noiseModel.Isotropic.Sigma(6, 1e-6),
+        )
+    )
+    graph.add(
+        gtsam.PoseTranslationPrior3D(
+            gtsam.symbol("x", k_count - 1),
+            gtsam.Pose3(world_from_body_vo[-1]),
+            gtsam.noiseModel.Isotropic.Sigma(3, max(0.2 * span, 1e-3)),
+        )
+    )
+    for lid in used:
+        values.insert(gtsam.symbol("l", lid), np.asarray(points_vo[lid], float))
+    for k, (ids, px) in enumerate(observations):
+        for lid, uv in zip(ids.tolist(), px, strict=True):
+            if lid in used and np.all(np.isfinite(uv)):
+                graph.add(
+                    gtsam.GenericProjectionFactorCal3_S2(
+                        np.asarray(uv, float),
+                        noise,
+                        gtsam.symbol("x", k),
+                        gtsam.symbol("l", lid),
+                        cal,
+                        body_p_cam,
+                    )
+                )
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(iterations)
+    try:
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    except RuntimeError:
+        return world_from_body_vo
+    out = np.array([result.atPose3(gtsam.symbol("x", k)).matrix() for k in range(k_count)])
+    # back to the input's scale (the loose prior lets it move): the caller's scale is the one
+    # the front end's map has, and the alignment's scale is applied to that map
+    lever = np.asarray(body_from_cam0, float)[:3, 3]
+    c_in = world_from_body_vo[:, :3, 3] + world_from_body_vo[:, :3, :3] @ lever
+    c_out = out[:, :3, 3] + out[:, :3, :3] @ lever
+    d_in = np.linalg.norm(c_in[1:] - c_in[0], axis=1)
+    d_out = np.linalg.norm(c_out[1:] - c_out[0], axis=1)
+    if not np.all(np.isfinite(out)) or d_out.sum() <= 0:
+        return world_from_body_vo
+    ratio = float(d_in.sum() / d_out.sum())
+    c_out = c_in[0] + (c_out - c_out[0]) * ratio
+    out[:, :3, 3] = c_out - out[:, :3, :3] @ lever
+    return out
 
 
 def align_mono(

@@ -48,7 +48,7 @@ from slam.backend.init import (
     still_init_kalman,
     world_from_vo_gravity,
 )
-from slam.backend.mono_init import align_mono
+from slam.backend.mono_init import align_mono, refine_vo_poses
 from slam.core.calibration import Calibration
 from slam.core.errors import SlamError
 from slam.core.geometry import invert_transform, scale_body_pose
@@ -131,6 +131,9 @@ class BackendStats:
     """Monocular: "initialising" (alignments tried and failed so far) or "initialised"."""
     vo_scale: float = 1.0
     """Monocular: metres per VO unit of the accepted alignment."""
+    scale_checks: list[dict[str, Any]] = field(default_factory=list)
+    """Monocular, once initialised: the front end's map scale against the IMU (1 is metric)."""
+    scale_checks_failed: int = 0
     mono_init_attempts: list[dict[str, Any]] = field(default_factory=list)
     """Monocular: every alignment tried (time, keyframes, scale, its check, why rejected): the
     scale estimate's history until one is accepted."""
@@ -184,6 +187,8 @@ class VioBackend:
         self._world_from_vo = np.eye(4)
         self._vo_scale = 1.0  # monocular: metres per VO unit
         self._monocular = not calibration.is_stereo
+        self._metric_keyframes: list[Keyframe] = []  # monocular: for the scale check
+        self.last_scale = 0.0  # monocular: the scale estimated at the latest keyframe, or 0
         self._init_keyframes: list[Keyframe] = []
         self._smoother: gtsam.IncrementalFixedLagSmoother | None = None
         self._values = gtsam.Values()
@@ -229,6 +234,7 @@ class VioBackend:
         t_start = time.perf_counter()
         cpu_start = time.thread_time()
         self.stats.keyframes += 1
+        self.last_scale = 0.0
         kf_pose_vo = _finite_pose(kf.world_from_body_vo)
         last_t_ns = self._states[-1].t_ns if self._initialized and self._states else -1
         if self._initialized and kf.t_ns <= last_t_ns:
@@ -241,6 +247,8 @@ class VioBackend:
                 # a new VO map segment: relative VO poses across the boundary are meaningless
                 self._states[-1].world_from_body_vo = None
             est = self._add_with_recovery(kf, kf_pose_vo)
+            if self._monocular and kf_pose_vo is not None:
+                self._check_scale(kf)
         self._segment_id = kf.segment_id
         self.stats.update_times_s.append(time.perf_counter() - t_start)
         self.stats.update_cpu_s.append(time.thread_time() - cpu_start)
@@ -348,7 +356,17 @@ class VioBackend:
             return self._uninitialised_estimate(kf, pose_vo)
         t, g, a = self.imu.arrays()
         body_from_cam0 = self._body_from_cam[0]
-        poses_vo = np.array([k.world_from_body_vo for k in kfs])
+        points: dict[int, np.ndarray] = {}
+        for k in kfs:  # the newest front-end position of each landmark
+            points.update(zip(k.landmark_ids.tolist(), np.asarray(k.points_world_vo, float)))
+        poses_vo = refine_vo_poses(
+            np.array([k.world_from_body_vo for k in kfs]),
+            [(np.asarray(k.landmark_ids), np.asarray(k.pixels_left_undist)) for k in kfs],
+            points,
+            self._k_mats[0],
+            body_from_cam0,
+            cfg.pixel_sigma_px,
+        )
         res = align_mono(
             np.array([k.t_ns for k in kfs], dtype=np.int64),
             poses_vo,
@@ -363,6 +381,7 @@ class VioBackend:
         )
         if res is None:
             return self._uninitialised_estimate(kf, pose_vo)
+        self.last_scale = res.scale
         if len(self.stats.mono_init_attempts) < 200:
             self.stats.mono_init_attempts.append(
                 {
@@ -384,10 +403,47 @@ class VioBackend:
         self._vo_scale = scale
         self.stats.vo_scale = scale
         self.stats.init_state = "initialised"
-        pose_w = self._world_from_vo @ scale_body_pose(pose_vo, scale, body_from_cam0)
+        pose_w = self._world_from_vo @ scale_body_pose(poses_vo[-1], scale, body_from_cam0)
         vel_w = self._world_from_vo[:3, :3] @ res.velocities_vo_m_s[-1]
         bias = make_bias(res.bias_gyro_rad_s, np.zeros(3))
         return self._finish_init(kf, pose_w, vel_w, bias, "mono")
+
+    def _check_scale(self, kf: Keyframe) -> None:
+        """Monocular, once initialised: the alignment run again on the front end's newest
+        metric keyframe poses (its map's scale against the IMU; 1 when right), every
+        ``mono_scale_check_every`` keyframes. Recorded in ``stats.scale_checks``; a check off
+        by more than ``mono_scale_check_max_error`` counts as failed."""
+        cfg = self.config
+        if not kf.metric or cfg.mono_scale_check_every == 0:
+            return
+        kfs = [k for k in self._metric_keyframes if k.segment_id == kf.segment_id] + [kf]
+        self._metric_keyframes = kfs = kfs[-2 * cfg.mono_init_keyframes :]
+        if len(kfs) < 2 * cfg.mono_init_keyframes or kf.keyframe_id % cfg.mono_scale_check_every:
+            return
+        t, g, a = self.imu.arrays()
+        res = align_mono(
+            np.array([k.t_ns for k in kfs], dtype=np.int64),
+            np.array([k.world_from_body_vo for k in kfs]),
+            self._body_from_cam[0],
+            t,
+            g,
+            a,
+            self.imu_calibration,
+            cfg.imu_gap_max_s,
+            cfg.mono_init_max_gravity_error,
+            cfg.mono_init_max_scale_disagreement,
+        )
+        if res is None or not res.accepted:
+            return  # too little excitation to tell
+        self.last_scale = res.scale
+        failed = abs(res.scale - 1.0) > cfg.mono_scale_check_max_error
+        self.stats.scale_checks_failed += int(failed)
+        if len(self.stats.scale_checks) < 2000:
+            self.stats.scale_checks.append(
+                {"t_ns": kf.t_ns, "scale": round(res.scale, 5), "failed": failed}
+            )
+        if failed:
+            log.warning("monocular scale check failed: the map is %.3f x metric", res.scale)
 
     def _moving_init(self, kfs: list[Keyframe]) -> MovingInitResult | None:
         t, g, a = self.imu.arrays()

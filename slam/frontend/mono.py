@@ -42,6 +42,7 @@ from slam.frontend.features import detect_features, track_klt
 from slam.frontend.tracker import MAX_STORED_KEYFRAME_POSES, FrontEnd
 from slam.imu_buffer import ImuBuffer
 
+MONO_LANDMARK_GATE = 0.1
 WAITING = "waiting for motion"
 INITIALISING = "initialising"
 
@@ -120,12 +121,47 @@ class MonoFrontEnd(FrontEnd):
         relocaliser: Any = None,
     ):
         super().__init__(calib, cfg, imu, estimate_source, relocaliser)
+        self._source = self.estimate_source
+        self._gate_cache: tuple[Estimate, Estimate] | None = None
+        if estimate_source is not None:
+            self.estimate_source = self._gated_estimate
         self._ref: _Reference | None = None
         self._next_candidate = -2  # candidates have ids <= -2; landmarks >= 0; -1 unused
         # candidate id -> (cam_from_world at its first view (4, 4), normalised ray (2,), born at kf)
         self._cand: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}
         self.scale_adopted = 1.0
         self._wait_state = ""
+
+    # ------------------------------------------------------------------ feedback
+    def _gated_estimate(self) -> Estimate | None:
+        """The back end's estimate with only the landmark positions that agree with ours
+        (within ``MONO_LANDMARK_GATE`` of their distance from the camera): a monocular smart
+        factor's point from a short baseline can be far off in depth, and a few of them
+        adopted as our landmarks pull PnP away."""
+        est = self._source()
+        if est is None or not est.initialized or not len(est.landmark_ids):
+            return est
+        cached = self._gate_cache
+        if cached is not None and cached[0] is est:
+            return cached[1]
+        ids = est.landmark_ids.tolist()
+        ours = np.array([self.landmarks.get(i, (np.nan, np.nan, np.nan)) for i in ids], float)
+        theirs = np.asarray(est.landmark_positions_world, float)
+        centre = (
+            (self.world_from_body @ self.body_from_cam0)[:3, 3]
+            if self.world_from_body is not None
+            else np.zeros(3)
+        )
+        dist = np.linalg.norm(ours - centre, axis=1)
+        with np.errstate(invalid="ignore"):
+            ok = np.linalg.norm(theirs - ours, axis=1) <= MONO_LANDMARK_GATE * dist
+        # (landmarks we no longer track pass: the landmark map keeps the back end's)
+        ok |= ~np.isfinite(ours).all(axis=1)
+        gated = dataclasses.replace(
+            est, landmark_ids=est.landmark_ids[ok], landmark_positions_world=theirs[ok]
+        )
+        self._gate_cache = (est, gated)
+        return gated
 
     # ------------------------------------------------------------------ scale
     def _adopt_scale(self, est: Estimate, fe_pose: np.ndarray) -> np.ndarray:
@@ -151,6 +187,16 @@ class MonoFrontEnd(FrontEnd):
         self.scale_adopted = s
         self.stats.state_log.append((est.t_ns, f"map scaled by {s:.4f} (metres per VO unit)"))
         return scale_body_pose(fe_pose, s, b)
+
+    def _move_world(self, correction: np.ndarray) -> None:
+        """As the stereo front end's, and the candidates' first views and the reference move
+        with the map (a triangulation mixes them with the current pose)."""
+        super()._move_world(correction)
+        old_from_new = invert_transform(correction)
+        for cid, (cam_from_world, ray, kf) in self._cand.items():
+            self._cand[cid] = (cam_from_world @ old_from_new, ray, kf)
+        if self._ref is not None:
+            self._ref.world_from_body = correction @ self._ref.world_from_body
 
     # ------------------------------------------------------------------ start
     def _normalised(self, px: np.ndarray) -> np.ndarray:

@@ -61,7 +61,7 @@ class _Estimator(WorkerCore):
         if resets > self.resets_seen:
             events.append(f"back end reset ({resets} so far)")
             self.resets_seen = resets
-        return BackendOutput(est, kf.keyframe_id, update_ms, tuple(events))
+        return BackendOutput(est, kf.keyframe_id, update_ms, tuple(events), self.backend.last_scale)
 
     def handle(self, msg: Any) -> list[Any]:
         if isinstance(msg, ImuBatch):
@@ -83,6 +83,7 @@ class _Estimator(WorkerCore):
         out["failures"] = list(getattr(s, "failures", []))[:20]
         if s.mono_init_attempts:
             out["mono_init_attempts"] = list(s.mono_init_attempts)
+            out["scale_checks"] = list(s.scale_checks)
         imu_stats = getattr(self.backend.imu, "stats", None)
         if imu_stats is not None:
             out["imu"] = {k: v for k, v in vars(imu_stats).items() if isinstance(v, (int, float))}
