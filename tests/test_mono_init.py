@@ -16,7 +16,7 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
-def _align(world, kfs, vo_units_per_m: float):
+def _align(world, kfs, vo_units_per_m: float, max_scale_std: float = 0.05):
     body_from_cam0 = world.calibration.cameras[0].body_from_cam
     poses = np.array(
         [scale_body_pose(k.world_from_body_vo, vo_units_per_m, body_from_cam0) for k in kfs]
@@ -33,6 +33,7 @@ def _align(world, kfs, vo_units_per_m: float):
         imu_gap_max_s=0.1,
         max_gravity_error_m_s2=1.0,
         max_scale_disagreement=0.1,
+        max_scale_std=max_scale_std,
     )
 
 
@@ -54,7 +55,17 @@ def test_alignment_recovers_scale_gravity_velocity_gyro_bias(seed, vo_units_per_
     assert np.abs(res.bias_gyro_rad_s - world.imu.gyro_bias_rad_s[0]).max() < 0.008  # of 0.077
 
 
-def test_alignment_needs_the_imu_over_every_interval():
+def test_alignment_with_noisy_vo_is_rejected_not_wrong():
+    """A 2 mm VO random walk per keyframe drowns 1.5 s of this flight's accelerations (the
+    scale comes out ~24 % off): the scale's standard deviation says so, and it is rejected."""
+    world = generate_world(duration_s=3.0, seed=0, start_s=3.0, vo_step_sigma_m=2e-3)
+    res = _align(world, world.keyframes[:16], 1.0, max_scale_std=0.02)
+    assert res is not None and not res.accepted
+    assert "excitation" in res.reason or "reproduced" in res.reason
+    assert abs(res.scale - 1.0) > 0.1  # it would have been wrong
+
+
+def test_alignment_needs_four_keyframes():
     world = generate_world(duration_s=2.0, seed=0, start_s=3.0)
     kfs = world.keyframes[:3]
     assert _align(world, kfs, 1.0) is None  # too few keyframes

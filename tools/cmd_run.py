@@ -19,6 +19,8 @@ examples:
   slam run bag.mcap --left-topic /left --right-topic /right --imu-topic /imu \\
            --camchain camchain.yaml --imu-yaml imu.yaml --out run2
   slam run room.mcap --out run1 --sequential          # one thread, deterministic output
+  slam run room.mcap --config euroc-mono-imu --out m1 # cam0 + IMU only (monocular-inertial;
+                                  # the default for a source with one camera and an IMU)
 
 Ctrl-C (or SIGTERM) stops reading, ends every stage and writes every output for what was
 processed (exit code 130 / 143); a second Ctrl-C stops waiting for the stages.

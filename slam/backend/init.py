@@ -196,7 +196,7 @@ def _preintegrate_all(
     return out
 
 
-def _deltas(
+def bias_corrected_deltas(
     pim: gtsam.PreintegratedCombinedMeasurements,
     bias_gyro: np.ndarray,
     bias_accel: np.ndarray,
@@ -234,13 +234,13 @@ def estimate_gyro_bias(
         eps = 1e-4
         for i, pim in enumerate(pims):
             rel = rot_vo[i].T @ rot_vo[i + 1]
-            d0, _, _ = _deltas(pim, bias_gyro, zero3, gravity_n)
+            d0, _, _ = bias_corrected_deltas(pim, bias_gyro, zero3, gravity_n)
             r0 = so3_log(d0.T @ rel)
             jac = np.zeros((3, 3))
             for a in range(3):
                 db = bias_gyro.copy()
                 db[a] += eps
-                da, _, _ = _deltas(pim, db, zero3, gravity_n)
+                da, _, _ = bias_corrected_deltas(pim, db, zero3, gravity_n)
                 jac[:, a] = (so3_log(da.T @ rel) - r0) / eps
             rows.append(jac)
             resid.append(r0)
@@ -307,13 +307,13 @@ def moving_init(
         eps = 1e-3
         for i, pim in enumerate(pims):
             dt = pim.deltaTij()
-            _, dv0, dp0 = _deltas(pim, bias_gyro, zero3, gravity_n)
+            _, dv0, dp0 = bias_corrected_deltas(pim, bias_gyro, zero3, gravity_n)
             jv = np.zeros((3, 3))
             jp = np.zeros((3, 3))
             for a in range(3):
                 ba = np.zeros(3)
                 ba[a] = eps
-                _, dva, dpa = _deltas(pim, bias_gyro, ba, gravity_n)
+                _, dva, dpa = bias_corrected_deltas(pim, bias_gyro, ba, gravity_n)
                 jv[:, a] = (dva - dv0) / eps
                 jp[:, a] = (dpa - dp0) / eps
             ri = rot_vo[i]

@@ -348,7 +348,7 @@ class VioBackend:
         if pose_vo is None:
             return self._uninitialised_estimate(kf, None)
         self._init_keyframes.append(kf)
-        kfs = self._init_keyframes = self._init_keyframes[-2 * cfg.mono_init_keyframes :]
+        kfs = self._init_keyframes = self._init_keyframes[-3 * cfg.mono_init_keyframes :]
         self.imu.trim(kfs[0].t_ns - 1_000_000_000)
         self.stats.init_state = "initialising"
         span_s = (kfs[-1].t_ns - kfs[0].t_ns) * 1e-9
@@ -378,6 +378,7 @@ class VioBackend:
             cfg.imu_gap_max_s,
             cfg.mono_init_max_gravity_error,
             cfg.mono_init_max_scale_disagreement,
+            max_scale_std=cfg.mono_init_max_scale_std,
         )
         if res is None:
             return self._uninitialised_estimate(kf, pose_vo)
@@ -389,6 +390,7 @@ class VioBackend:
                     "keyframes": len(kfs),
                     "scale": round(res.scale, 5),
                     "scale_first_keyframes": round(res.scale_subset, 5),
+                    "scale_std": round(res.scale_std, 5),
                     "gravity_norm_free_m_s2": round(res.gravity_norm_free_m_s2, 4),
                     "accepted": res.accepted,
                     "reason": res.reason,
@@ -405,7 +407,7 @@ class VioBackend:
         self.stats.init_state = "initialised"
         pose_w = self._world_from_vo @ scale_body_pose(poses_vo[-1], scale, body_from_cam0)
         vel_w = self._world_from_vo[:3, :3] @ res.velocities_vo_m_s[-1]
-        bias = make_bias(res.bias_gyro_rad_s, np.zeros(3))
+        bias = make_bias(res.bias_gyro_rad_s, res.bias_accel_m_s2)
         return self._finish_init(kf, pose_w, vel_w, bias, "mono")
 
     def _check_scale(self, kf: Keyframe) -> None:
@@ -432,15 +434,23 @@ class VioBackend:
             cfg.imu_gap_max_s,
             cfg.mono_init_max_gravity_error,
             cfg.mono_init_max_scale_disagreement,
+            max_scale_std=cfg.mono_init_max_scale_std,
         )
-        if res is None or not res.accepted:
-            return  # too little excitation to tell
+        if res is None:
+            return
+        # a check that would not be accepted as a start (too little excitation) cannot fail
         self.last_scale = res.scale
-        failed = abs(res.scale - 1.0) > cfg.mono_scale_check_max_error
+        failed = res.accepted and abs(res.scale - 1.0) > cfg.mono_scale_check_max_error
         self.stats.scale_checks_failed += int(failed)
         if len(self.stats.scale_checks) < 2000:
             self.stats.scale_checks.append(
-                {"t_ns": kf.t_ns, "scale": round(res.scale, 5), "failed": failed}
+                {
+                    "t_ns": kf.t_ns,
+                    "scale": round(res.scale, 5),
+                    "scale_std": round(res.scale_std, 5),
+                    "conclusive": res.accepted,
+                    "failed": failed,
+                }
             )
         if failed:
             log.warning("monocular scale check failed: the map is %.3f x metric", res.scale)
