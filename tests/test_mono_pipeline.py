@@ -67,19 +67,22 @@ def test_mono_without_imu_is_a_clear_error(mono_run):
         run_slam(seq, preset_config("euroc-mono-imu"), None, progress=False)
 
 
-def test_real_euroc_frames_nearly_still_wait_for_motion(shared_data, tmp_path):
-    """The 95 real EuRoC V1_01 frames (the MAV on the ground): no map, no scale, no pose."""
+def test_real_euroc_frames_nearly_still_wait_for_motion(shared_data, tmp_path, capsys):
+    """The 95 real EuRoC V1_01 frames (the MAV on the ground): no map, no scale, no pose, and
+    `slam run` says it is waiting for motion."""
+    import json
+
     from conftest import require
 
-    from datasets.open import open_sequence
+    from tools.cli import main
 
-    seq = open_sequence(require(shared_data / "euroc_v101_micro"))
-    cfg = preset_config("euroc-mono-imu")
-    cfg.player.speed = 0.0
-    cfg.player.sequential = True
-    res = run_slam(seq, cfg, tmp_path, progress=False)
-    s = res.stats
-    assert s["backend"]["initialised_after_s"] is None
-    assert len(res.trajectory.t_ns) == 0
-    assert s["frame_states"].get("waiting for motion", 0) >= 0.9 * seq.num_frames
-    assert any(e["event"].startswith("waiting for motion") for e in s["events"])
+    root = require(shared_data / "euroc_v101_micro")
+    argv = ["run", str(root), "--config", "euroc-mono-imu", "--sequential", "--no-progress"]
+    code = main([*argv, "--out", str(tmp_path)])
+    assert code == 1
+    assert "waiting for motion: 95 of 95 frames" in capsys.readouterr().err
+    s = json.loads((tmp_path / "stats.json").read_text())
+    assert s["backend"]["initialised_after_s"] is None and s["frames_tracked"] == 0
+    assert s["frame_states"] == {"waiting for motion": 95}
+    poses = [ln for ln in (tmp_path / "trajectory.tum").read_text().splitlines() if ln[:1] != "#"]
+    assert poses == []

@@ -235,6 +235,14 @@ def exit_code(result: Any) -> int:
         )
         return result.exit_code or 130
     s = result.stats
+    waiting = s.get("frame_states", {}).get("waiting for motion", 0)
+    if s["frames_in"] > 0 and s["frames_tracked"] == 0 and waiting >= 0.5 * s["frames_in"]:
+        print(
+            f"slam run: error: waiting for motion: {waiting} of {s['frames_in']} frames, the "
+            "camera hardly moved; a monocular run needs motion to find the scale (no pose given)",
+            file=sys.stderr,
+        )
+        return 1
     if s["frames_in"] > 0 and s["frames_tracked"] == 0:
         print(
             f"slam run: error: none of the {s['frames_in']} frames could be tracked (see the "
