@@ -739,7 +739,10 @@ class VioBackend:
             pose_vo,
             kf,
         )
-        self.imu.trim(self._states[0].t_ns - int(1e9))
+        oldest_ns = self._states[0].t_ns
+        if self._metric_keyframes:  # monocular: the scale check integrates over its window
+            oldest_ns = min(oldest_ns, self._metric_keyframes[0].t_ns)
+        self.imu.trim(oldest_ns - int(1e9))
 
     def _map_visual(
         self,
