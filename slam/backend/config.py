@@ -67,11 +67,6 @@ class BackendConfig:
     mono_init_max_scale_disagreement: float = bounded(0.1, gt=0)
     """Monocular start: reject the alignment when the first two thirds of its keyframes give
     a scale differing by more than this fraction (too little excitation to fix it)."""
-    mono_scale_check_every: int = bounded(5, ge=0)
-    """Monocular, once initialised: every this many keyframes the alignment is run again on
-    the front end's newest (metric) keyframe poses; its scale should stay 1 (0: never)."""
-    mono_scale_check_max_error: float = bounded(0.1, gt=0)
-    """A scale check further than this from 1 is reported as failed (an event)."""
 
     # --- smoother -------------------------------------------------------------------------------
     lag_s: float = bounded(1.0, gt=0)

@@ -131,9 +131,6 @@ class BackendStats:
     """Monocular: "initialising" (alignments tried and failed so far) or "initialised"."""
     vo_scale: float = 1.0
     """Monocular: metres per VO unit of the accepted alignment."""
-    scale_checks: list[dict[str, Any]] = field(default_factory=list)
-    """Monocular, once initialised: the front end's map scale against the IMU (1 is metric)."""
-    scale_checks_failed: int = 0
     mono_init_attempts: list[dict[str, Any]] = field(default_factory=list)
     """Monocular: every alignment tried (time, keyframes, scale, its check, why rejected): the
     scale estimate's history until one is accepted."""
@@ -187,8 +184,7 @@ class VioBackend:
         self._world_from_vo = np.eye(4)
         self._vo_scale = 1.0  # monocular: metres per VO unit
         self._monocular = not calibration.is_stereo
-        self._metric_keyframes: list[Keyframe] = []  # monocular: for the scale check
-        self.last_scale = 0.0  # monocular: the scale estimated at the latest keyframe, or 0
+        self.last_scale = 0.0  # monocular: the start's scale tried at the latest keyframe, or 0
         self._init_keyframes: list[Keyframe] = []
         self._smoother: gtsam.IncrementalFixedLagSmoother | None = None
         self._values = gtsam.Values()
@@ -247,8 +243,6 @@ class VioBackend:
                 # a new VO map segment: relative VO poses across the boundary are meaningless
                 self._states[-1].world_from_body_vo = None
             est = self._add_with_recovery(kf, kf_pose_vo)
-            if self._monocular and kf_pose_vo is not None:
-                self._check_scale(kf)
         self._segment_id = kf.segment_id
         self.stats.update_times_s.append(time.perf_counter() - t_start)
         self.stats.update_cpu_s.append(time.thread_time() - cpu_start)
@@ -409,51 +403,6 @@ class VioBackend:
         vel_w = self._world_from_vo[:3, :3] @ res.velocities_vo_m_s[-1]
         bias = make_bias(res.bias_gyro_rad_s, res.bias_accel_m_s2)
         return self._finish_init(kf, pose_w, vel_w, bias, "mono")
-
-    def _check_scale(self, kf: Keyframe) -> None:
-        """Monocular, once initialised: the alignment run again on the front end's newest
-        metric keyframe poses (its map's scale against the IMU; 1 when right), every
-        ``mono_scale_check_every`` keyframes. Recorded in ``stats.scale_checks``; a check off
-        by more than ``mono_scale_check_max_error`` counts as failed."""
-        cfg = self.config
-        if not kf.metric or cfg.mono_scale_check_every == 0:
-            return
-        kfs = [k for k in self._metric_keyframes if k.segment_id == kf.segment_id] + [kf]
-        self._metric_keyframes = kfs = kfs[-2 * cfg.mono_init_keyframes :]
-        if len(kfs) < 2 * cfg.mono_init_keyframes or kf.keyframe_id % cfg.mono_scale_check_every:
-            return
-        t, g, a = self.imu.arrays()
-        res = align_mono(
-            np.array([k.t_ns for k in kfs], dtype=np.int64),
-            np.array([k.world_from_body_vo for k in kfs]),
-            self._body_from_cam[0],
-            t,
-            g,
-            a,
-            self.imu_calibration,
-            cfg.imu_gap_max_s,
-            cfg.mono_init_max_gravity_error,
-            cfg.mono_init_max_scale_disagreement,
-            max_scale_std=cfg.mono_init_max_scale_std,
-        )
-        if res is None:
-            return
-        # a check that would not be accepted as a start (too little excitation) cannot fail
-        self.last_scale = res.scale
-        failed = res.accepted and abs(res.scale - 1.0) > cfg.mono_scale_check_max_error
-        self.stats.scale_checks_failed += int(failed)
-        if len(self.stats.scale_checks) < 2000:
-            self.stats.scale_checks.append(
-                {
-                    "t_ns": kf.t_ns,
-                    "scale": round(res.scale, 5),
-                    "scale_std": round(res.scale_std, 5),
-                    "conclusive": res.accepted,
-                    "failed": failed,
-                }
-            )
-        if failed:
-            log.warning("monocular scale check failed: the map is %.3f x metric", res.scale)
 
     def _moving_init(self, kfs: list[Keyframe]) -> MovingInitResult | None:
         t, g, a = self.imu.arrays()
@@ -739,10 +688,7 @@ class VioBackend:
             pose_vo,
             kf,
         )
-        oldest_ns = self._states[0].t_ns
-        if self._metric_keyframes:  # monocular: the scale check integrates over its window
-            oldest_ns = min(oldest_ns, self._metric_keyframes[0].t_ns)
-        self.imu.trim(oldest_ns - int(1e9))
+        self.imu.trim(self._states[0].t_ns - int(1e9))
 
     def _map_visual(
         self,

@@ -210,8 +210,8 @@ class BackendOutput:
     update_ms: float  # wall time of add_keyframe()
     events: tuple[str, ...] = ()  # initialised, resets, IMU warnings since the last output
     mono_scale: float = 0.0
-    """Monocular: the scale (metres per VO unit before initialisation, the front end's map
-    against the IMU after it: 1 when metric) estimated at this keyframe; 0 when none was."""
+    """Monocular: the start's scale (metres per VO unit) the alignment tried at this
+    keyframe, accepted or not; 0 when none was tried."""
 
 
 @dataclass(frozen=True, eq=False)

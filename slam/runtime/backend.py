@@ -83,7 +83,6 @@ class _Estimator(WorkerCore):
         out["failures"] = list(getattr(s, "failures", []))[:20]
         if s.mono_init_attempts:
             out["mono_init_attempts"] = list(s.mono_init_attempts)
-            out["scale_checks"] = list(s.scale_checks)
         imu_stats = getattr(self.backend.imu, "stats", None)
         if imu_stats is not None:
             out["imu"] = {k: v for k, v in vars(imu_stats).items() if isinstance(v, (int, float))}
