@@ -86,3 +86,37 @@ def test_real_euroc_frames_nearly_still_wait_for_motion(shared_data, tmp_path, c
     assert s["frame_states"] == {"waiting for motion": 95}
     poses = [ln for ln in (tmp_path / "trajectory.tum").read_text().splitlines() if ln[:1] != "#"]
     assert poses == []
+
+
+def test_one_camera_mcap_picks_the_mono_preset(shared_data, tmp_path):
+    """Our MCAP with one image topic and an IMU: `slam run` starts from euroc-mono-imu."""
+    import json
+
+    from conftest import require
+
+    from datasets.mcap_io import write_sequence_mcap
+    from datasets.memory import InMemorySequence
+    from datasets.open import open_sequence
+    from datasets.sequence import ImuArrays
+    from tools.cli import main
+
+    src = Cam0Only.of(open_sequence(require(shared_data / "euroc_v101_micro")))
+    t = src.frame_times_ns()[:8]
+    imu = src.imu()
+    keep = imu.t_ns <= t[-1]
+    seq = InMemorySequence(
+        "mono8",
+        src.calibration,
+        t,
+        [src.frame(i).left for i in range(8)],
+        None,
+        ImuArrays(imu.t_ns[keep], imu.gyro_rad_s[keep], imu.accel_m_s2[keep]),
+    )
+    path = tmp_path / "mono.mcap"
+    write_sequence_mcap(seq, path, progress=False, compression="none")
+    assert not open_sequence(path).calibration.is_stereo
+    out = tmp_path / "run"
+    main(
+        ["run", str(path), "--sequential", "--max-frames", "5", "--no-progress", "--out", str(out)]
+    )
+    assert json.loads((out / "stats.json").read_text())["preset"] == "euroc-mono-imu"
