@@ -150,6 +150,25 @@ class FrontendConfig:
     the worker processes hold off a core."""
     use_gyro_prediction: bool = True
     """Predict feature positions by integrating the gyro between frames."""
+    mono_init_min_parallax_px: float = bounded(20.0, gt=0)
+    """Monocular start: median corner displacement from the reference frame before a two-view
+    start is tried; below it the state is "waiting for motion"."""
+    # bounds: the essential matrix needs 5 points; more than max_features never track
+    mono_init_min_points: int = bounded(60, ge=8, le_field="max_features")
+    """Monocular start: triangulated points the two-view start needs."""
+    mono_init_min_angle_deg: float = bounded(1.5, gt=0, lt=90)
+    """Monocular start: median angle between the two views' rays at the points (a pure
+    rotation has none)."""
+    mono_init_depth_m: float = bounded(2.0, gt=0)
+    """Monocular start: the map's unit until the back end's alignment fixes the scale (the
+    two-view baseline is chosen so the median depth is this)."""
+    mono_min_angle_deg: float = bounded(1.0, gt=0, lt=90)
+    """A candidate becomes a landmark once the rays of its first view and the current
+    keyframe's differ by this angle."""
+    mono_max_reprojection_px: float = bounded(2.0, gt=0)
+    """Two-view triangulation: largest reprojection error in either view, pixels."""
+    mono_candidate_max_keyframes: int = bounded(6, ge=1)
+    """A candidate not triangulated after this many keyframes is dropped."""
 
 
 @dataclass
@@ -204,6 +223,10 @@ class SlamConfig:
     backend_process: bool = True
     """Run the back end in a worker process (GTSAM holds the GIL for every call; a thread would
     stall the front end). False runs it in a thread of this process."""
+    monocular: bool = False
+    """Use cam0 only (with the IMU, which fixes the scale): a stereo source is read as mono,
+    landmarks are triangulated from motion (``slam/frontend/mono.py``), the back end aligns
+    the up-to-scale start with the IMU (``slam/backend/mono_init.py``)."""
     loop_closure: bool = False
     """Place recognition, loop closure (pose-graph optimisation) and relocalisation."""
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
@@ -220,6 +243,16 @@ class SlamConfig:
 PRESETS: dict[str, dict[str, Any]] = {
     "stereo-vo": {"use_imu": False},
     "euroc-stereo-imu": {"use_imu": True, "loop_closure": True},
+    # a monocular landmark's last position (a smart factor's, from a short baseline) is too
+    # rough to hold a revisit by a 2 cm prior (measured: resets on position jumps); two
+    # keyframes close together hardly constrain a monocular landmark (one 35 s run: Sim(3)
+    # scale 1.178 with 2, 1.016 with 3; BENCHMARKS.md)
+    "euroc-mono-imu": {
+        "use_imu": True,
+        "loop_closure": True,
+        "monocular": True,
+        "backend": {"map_landmarks": False, "min_keyframes_per_landmark": 3},
+    },
 }
 
 

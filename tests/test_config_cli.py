@@ -62,7 +62,7 @@ def test_show_an_unknown_preset_is_one_line(capsys) -> None:
     err = capsys.readouterr().err
     assert err == (
         "slam config: error: config 'stereo-imu' is neither a preset "
-        "(euroc-stereo-imu, stereo-vo) nor a YAML file\n"
+        "(euroc-mono-imu, euroc-stereo-imu, stereo-vo) nor a YAML file\n"
     )
 
 

@@ -133,8 +133,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="print every key with its value, unit, allowed range and what it does",
         description="Print every configuration key of a preset or a YAML config file with its "
         "value, unit, allowed range and what it does. `slam run` starts from euroc-stereo-imu "
-        "for a sequence with an IMU, else from stereo-vo.",
-        epilog="examples:\n  slam config show euroc-stereo-imu\n"
+        "for a sequence with an IMU (euroc-mono-imu when it has one camera), else from "
+        "stereo-vo.",
+        epilog="examples:\n  slam config show euroc-stereo-imu\n  slam config show euroc-mono-imu\n"
         "  slam config show run1/config.yaml      # the configuration a run used\n"
         "  slam config show | grep -A2 depth",
         formatter_class=argparse.RawDescriptionHelpFormatter,

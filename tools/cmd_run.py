@@ -19,6 +19,8 @@ examples:
   slam run bag.mcap --left-topic /left --right-topic /right --imu-topic /imu \\
            --camchain camchain.yaml --imu-yaml imu.yaml --out run2
   slam run room.mcap --out run1 --sequential          # one thread, deterministic output
+  slam run room.mcap --config euroc-mono-imu --out m1 # cam0 + IMU only (monocular-inertial;
+                                  # the default for a source with one camera and an IMU)
 
 Ctrl-C (or SIGTERM) stops reading, ends every stage and writes every output for what was
 processed (exit code 130 / 143); a second Ctrl-C stops waiting for the stages.
@@ -133,7 +135,10 @@ def handle(args: argparse.Namespace) -> int:
     # the input is opened and the configuration checked before --out is made: a bad input or
     # configuration leaves nothing behind
     seq = open_sequence(args.seq, **source_options(args), strict=args.strict)
-    default_preset = "euroc-stereo-imu" if seq.num_imu else "stereo-vo"
+    if not seq.calibration.is_stereo and seq.num_imu:
+        default_preset = "euroc-mono-imu"  # one camera: cam0 + IMU
+    else:
+        default_preset = "euroc-stereo-imu" if seq.num_imu else "stereo-vo"
     cfg = load_config(args.config, default_preset)
     if args.speed is not None:
         cfg.player.speed = parse_speed(args.speed)
@@ -146,8 +151,13 @@ def handle(args: argparse.Namespace) -> int:
 
         cfg.mapping = dataclasses.replace(cfg.mapping, enabled=True)
     validate_config(cfg)  # with the command line's overrides
-    if not seq.calibration.is_stereo:
-        raise SlamError(f"{seq.name}: the pipeline needs a stereo sequence (cam0 and cam1)")
+    if not seq.calibration.is_stereo and not cfg.monocular:
+        raise SlamError(
+            f"{seq.name}: one camera: the stereo pipeline needs cam0 and cam1; "
+            "use --config euroc-mono-imu (cam0 + IMU)"
+        )
+    if cfg.monocular and not seq.num_imu:
+        raise SlamError(f"{seq.name}: the monocular preset needs an IMU (it fixes the scale)")
     try:  # fail before the run, not after it, when the folder cannot be made
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -225,6 +235,14 @@ def exit_code(result: Any) -> int:
         )
         return result.exit_code or 130
     s = result.stats
+    waiting = s.get("frame_states", {}).get("waiting for motion", 0)
+    if s["frames_in"] > 0 and s["frames_tracked"] == 0 and waiting >= 0.5 * s["frames_in"]:
+        print(
+            f"slam run: error: waiting for motion: {waiting} of {s['frames_in']} frames, the "
+            "camera hardly moved; a monocular run needs motion to find the scale (no pose given)",
+            file=sys.stderr,
+        )
+        return 1
     if s["frames_in"] > 0 and s["frames_tracked"] == 0:
         print(
             f"slam run: error: none of the {s['frames_in']} frames could be tracked (see the "

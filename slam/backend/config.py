@@ -52,6 +52,22 @@ class BackendConfig:
     """Reject the unconstrained gravity solution if | |g| - g0 | exceeds this and retry with
     more keyframes."""
 
+    # bounds: the alignment's consistency check needs 4 keyframes
+    mono_init_keyframes: int = bounded(10, ge=4)
+    """Monocular start: keyframes (up-to-scale VO poses + the IMU between them) before the
+    visual-inertial alignment (``slam.backend.mono_init``) is tried; up to three times as many (the
+    newest) are used, so a failed attempt is retried on a longer window, then one that slides."""
+    mono_init_min_span_s: float = bounded(1.0, ge=0)
+    """Monocular start: minimum time span of those keyframes."""
+    mono_init_max_gravity_error: float = bounded(0.5, gt=0, unit="m/s^2")
+    """Monocular start: reject the alignment when |g| of its free solution is this far off."""
+    mono_init_max_scale_std: float = bounded(0.02, gt=0)
+    """Monocular start: reject the alignment when the scale's standard deviation (from the
+    fit's residuals) is above this fraction of it: too little acceleration yet."""
+    mono_init_max_scale_disagreement: float = bounded(0.1, gt=0)
+    """Monocular start: reject the alignment when the first two thirds of its keyframes give
+    a scale differing by more than this fraction (too little excitation to fix it)."""
+
     # --- smoother -------------------------------------------------------------------------------
     lag_s: float = bounded(1.0, gt=0)
     """Fixed-lag smoother window in seconds (states older than this are marginalised); 1 s is

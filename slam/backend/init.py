@@ -196,7 +196,7 @@ def _preintegrate_all(
     return out
 
 
-def _deltas(
+def bias_corrected_deltas(
     pim: gtsam.PreintegratedCombinedMeasurements,
     bias_gyro: np.ndarray,
     bias_accel: np.ndarray,
@@ -211,6 +211,47 @@ def _deltas(
     d_v = nav.velocity() - gravity_n * dt
     d_p = nav.position() - 0.5 * gravity_n * dt * dt
     return d_rot, d_v, d_p
+
+
+def estimate_gyro_bias(
+    params: gtsam.PreintegrationCombinedParams,
+    pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    rot_vo: np.ndarray,
+) -> tuple[np.ndarray, float]:
+    """Gyro bias from visual relative rotations ``rot_vo`` (K, 3, 3) against the IMU pieces
+    between them: Gauss-Newton on sum ||Log(dR(bg)^T R_i^T R_j)||^2, re-integrating about the
+    current estimate each iteration (numeric Jacobian through GTSAM's bias correction).
+    Returns (bias, RMS rotation residual in rad). Used by the stereo moving start and the
+    monocular alignment (``slam.backend.mono_init``)."""
+    gravity_n = np.asarray(params.n_gravity, dtype=float)  # rotations ignore it
+    bias_gyro = np.zeros(3)
+    zero3 = np.zeros(3)
+    res_rms = 0.0
+    for _ in range(3):
+        pims = _preintegrate_all(params, pieces, bias_gyro)
+        rows = []
+        resid = []
+        eps = 1e-4
+        for i, pim in enumerate(pims):
+            rel = rot_vo[i].T @ rot_vo[i + 1]
+            d0, _, _ = bias_corrected_deltas(pim, bias_gyro, zero3, gravity_n)
+            r0 = so3_log(d0.T @ rel)
+            jac = np.zeros((3, 3))
+            for a in range(3):
+                db = bias_gyro.copy()
+                db[a] += eps
+                da, _, _ = bias_corrected_deltas(pim, db, zero3, gravity_n)
+                jac[:, a] = (so3_log(da.T @ rel) - r0) / eps
+            rows.append(jac)
+            resid.append(r0)
+        jac_all = np.vstack(rows)
+        r_all = np.concatenate(resid)
+        step = np.linalg.lstsq(jac_all, -r_all, rcond=None)[0]
+        bias_gyro = bias_gyro + step
+        res_rms = float(np.sqrt(np.mean(r_all**2)))
+        if np.linalg.norm(step) < 1e-7:
+            break
+    return bias_gyro, res_rms
 
 
 def moving_init(
@@ -247,35 +288,9 @@ def moving_init(
     rot_vo = world_from_body_vo[:, :3, :3]
     pos_vo = world_from_body_vo[:, :3, 3]
 
-    # 1) gyro bias: Gauss-Newton on sum ||Log(ΔR(bg)^T R_i^T R_j)||^2, re-integrating about the
-    #    current estimate each iteration (numeric Jacobian through GTSAM's bias correction).
-    bias_gyro = np.zeros(3)
+    # 1) gyro bias from the relative rotations
+    bias_gyro, res_rms = estimate_gyro_bias(params, pieces, rot_vo)
     zero3 = np.zeros(3)
-    res_rms = 0.0
-    for _ in range(3):
-        pims = _preintegrate_all(params, pieces, bias_gyro)
-        rows = []
-        resid = []
-        eps = 1e-4
-        for i, pim in enumerate(pims):
-            rel = rot_vo[i].T @ rot_vo[i + 1]
-            d0, _, _ = _deltas(pim, bias_gyro, zero3, gravity_n)
-            r0 = so3_log(d0.T @ rel)
-            jac = np.zeros((3, 3))
-            for a in range(3):
-                db = bias_gyro.copy()
-                db[a] += eps
-                da, _, _ = _deltas(pim, db, zero3, gravity_n)
-                jac[:, a] = (so3_log(da.T @ rel) - r0) / eps
-            rows.append(jac)
-            resid.append(r0)
-        jac_all = np.vstack(rows)
-        r_all = np.concatenate(resid)
-        step = np.linalg.lstsq(jac_all, -r_all, rcond=None)[0]
-        bias_gyro = bias_gyro + step
-        res_rms = float(np.sqrt(np.mean(r_all**2)))
-        if np.linalg.norm(step) < 1e-7:
-            break
     pims = _preintegrate_all(params, pieces, bias_gyro)
 
     def solve(gravity_dir: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -292,13 +307,13 @@ def moving_init(
         eps = 1e-3
         for i, pim in enumerate(pims):
             dt = pim.deltaTij()
-            _, dv0, dp0 = _deltas(pim, bias_gyro, zero3, gravity_n)
+            _, dv0, dp0 = bias_corrected_deltas(pim, bias_gyro, zero3, gravity_n)
             jv = np.zeros((3, 3))
             jp = np.zeros((3, 3))
             for a in range(3):
                 ba = np.zeros(3)
                 ba[a] = eps
-                _, dva, dpa = _deltas(pim, bias_gyro, ba, gravity_n)
+                _, dva, dpa = bias_corrected_deltas(pim, bias_gyro, ba, gravity_n)
                 jv[:, a] = (dva - dv0) / eps
                 jp[:, a] = (dpa - dp0) / eps
             ri = rot_vo[i]

@@ -48,9 +48,10 @@ from slam.backend.init import (
     still_init_kalman,
     world_from_vo_gravity,
 )
+from slam.backend.mono_init import align_mono, refine_vo_poses
 from slam.core.calibration import Calibration
 from slam.core.errors import SlamError
-from slam.core.geometry import invert_transform
+from slam.core.geometry import invert_transform, scale_body_pose
 from slam.core.messages import Estimate, ImuSample, Keyframe
 
 log = logging.getLogger(__name__)
@@ -126,6 +127,13 @@ class BackendStats:
     map_observations: int = 0
     """...and their observations."""
     keyframes_without_visual: int = 0
+    init_state: str = ""
+    """Monocular: "initialising" (alignments tried and failed so far) or "initialised"."""
+    vo_scale: float = 1.0
+    """Monocular: metres per VO unit of the accepted alignment."""
+    mono_init_attempts: list[dict[str, Any]] = field(default_factory=list)
+    """Monocular: every alignment tried (time, keyframes, scale, its check, why rejected): the
+    scale estimate's history until one is accepted."""
     update_times_s: list[float] = field(default_factory=list)  # wall time per add_keyframe
     update_cpu_s: list[float] = field(default_factory=list)  # this thread's CPU time per call
     factor_counts: list[int] = field(default_factory=list)
@@ -174,6 +182,9 @@ class VioBackend:
         self._initialized = False
         self._segment_id = 0  # the front end's map segment of the latest keyframe
         self._world_from_vo = np.eye(4)
+        self._vo_scale = 1.0  # monocular: metres per VO unit
+        self._monocular = not calibration.is_stereo
+        self.last_scale = 0.0  # monocular: the start's scale tried at the latest keyframe, or 0
         self._init_keyframes: list[Keyframe] = []
         self._smoother: gtsam.IncrementalFixedLagSmoother | None = None
         self._values = gtsam.Values()
@@ -219,6 +230,7 @@ class VioBackend:
         t_start = time.perf_counter()
         cpu_start = time.thread_time()
         self.stats.keyframes += 1
+        self.last_scale = 0.0
         kf_pose_vo = _finite_pose(kf.world_from_body_vo)
         last_t_ns = self._states[-1].t_ns if self._initialized and self._states else -1
         if self._initialized and kf.t_ns <= last_t_ns:
@@ -283,6 +295,8 @@ class VioBackend:
         )
 
     def _try_initialise(self, kf: Keyframe, pose_vo: np.ndarray | None) -> Estimate:
+        if self._monocular:
+            return self._try_mono_initialise(kf, pose_vo)
         cfg = self.config
         if kf.segment_id != self._segment_id:
             self._init_keyframes = []  # VO poses of different segments do not chain
@@ -316,6 +330,79 @@ class VioBackend:
                     return self._finish_init(kf, pose_w, vel_w, bias, "moving")
         self._init_keyframes = self._init_keyframes[-3 * cfg.moving_init_keyframes :]
         return self._uninitialised_estimate(kf, pose_vo)
+
+    def _try_mono_initialise(self, kf: Keyframe, pose_vo: np.ndarray | None) -> Estimate:
+        """Monocular start: the visual-inertial alignment of the newest keyframes' up-to-scale
+        VO poses (``slam.backend.mono_init``); rejected, it is tried again at the next keyframe
+        on a window that slides on. Accepted: the smoother starts at this keyframe, in the
+        gravity-aligned metric world; every estimate carries the scale for the front end."""
+        cfg = self.config
+        if kf.segment_id != self._segment_id:
+            self._init_keyframes = []  # a new map segment has its own scale
+        if pose_vo is None:
+            return self._uninitialised_estimate(kf, None)
+        self._init_keyframes.append(kf)
+        kfs = self._init_keyframes = self._init_keyframes[-3 * cfg.mono_init_keyframes :]
+        self.imu.trim(kfs[0].t_ns - 1_000_000_000)
+        self.stats.init_state = "initialising"
+        span_s = (kfs[-1].t_ns - kfs[0].t_ns) * 1e-9
+        if len(kfs) < cfg.mono_init_keyframes or span_s < cfg.mono_init_min_span_s:
+            return self._uninitialised_estimate(kf, pose_vo)
+        t, g, a = self.imu.arrays()
+        body_from_cam0 = self._body_from_cam[0]
+        points: dict[int, np.ndarray] = {}
+        for k in kfs:  # the newest front-end position of each landmark
+            points.update(zip(k.landmark_ids.tolist(), np.asarray(k.points_world_vo, float)))
+        poses_vo = refine_vo_poses(
+            np.array([k.world_from_body_vo for k in kfs]),
+            [(np.asarray(k.landmark_ids), np.asarray(k.pixels_left_undist)) for k in kfs],
+            points,
+            self._k_mats[0],
+            body_from_cam0,
+            cfg.pixel_sigma_px,
+        )
+        res = align_mono(
+            np.array([k.t_ns for k in kfs], dtype=np.int64),
+            poses_vo,
+            body_from_cam0,
+            t,
+            g,
+            a,
+            self.imu_calibration,
+            cfg.imu_gap_max_s,
+            cfg.mono_init_max_gravity_error,
+            cfg.mono_init_max_scale_disagreement,
+            max_scale_std=cfg.mono_init_max_scale_std,
+        )
+        if res is None:
+            return self._uninitialised_estimate(kf, pose_vo)
+        self.last_scale = res.scale
+        if len(self.stats.mono_init_attempts) < 200:
+            self.stats.mono_init_attempts.append(
+                {
+                    "t_ns": kf.t_ns,
+                    "keyframes": len(kfs),
+                    "scale": round(res.scale, 5),
+                    "scale_first_keyframes": round(res.scale_subset, 5),
+                    "scale_std": round(res.scale_std, 5),
+                    "gravity_norm_free_m_s2": round(res.gravity_norm_free_m_s2, 4),
+                    "accepted": res.accepted,
+                    "reason": res.reason,
+                }
+            )
+        if not res.accepted:
+            log.info("monocular alignment rejected at keyframe %d: %s", kf.keyframe_id, res.reason)
+            return self._uninitialised_estimate(kf, pose_vo)
+        scale = res.scale
+        first_m = scale_body_pose(poses_vo[0], scale, body_from_cam0)
+        self._world_from_vo = world_from_vo_gravity(-res.gravity_vo_m_s2, first_m[:3, 3])
+        self._vo_scale = scale
+        self.stats.vo_scale = scale
+        self.stats.init_state = "initialised"
+        pose_w = self._world_from_vo @ scale_body_pose(poses_vo[-1], scale, body_from_cam0)
+        vel_w = self._world_from_vo[:3, :3] @ res.velocities_vo_m_s[-1]
+        bias = make_bias(res.bias_gyro_rad_s, res.bias_accel_m_s2)
+        return self._finish_init(kf, pose_w, vel_w, bias, "mono")
 
     def _moving_init(self, kfs: list[Keyframe]) -> MovingInitResult | None:
         t, g, a = self.imu.arrays()
@@ -916,6 +1003,7 @@ class VioBackend:
             keyframe_poses={s.keyframe_id: vals.atPose3(X(s.k)).matrix() for s in self._states},
             landmark_ids=lids,
             landmark_positions_world=pts,
+            vo_scale=self._vo_scale,
         )
 
 

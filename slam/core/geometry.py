@@ -139,3 +139,14 @@ def so3_log(rotation: np.ndarray) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
     return Rotation.from_matrix(rotation).as_rotvec()
+
+
+def scale_body_pose(
+    world_from_body: np.ndarray, scale: float, body_from_cam: np.ndarray
+) -> np.ndarray:
+    """world_from_body of a monocular map scaled by ``scale`` about its origin: the camera
+    centre scales (it is what monocular structure from motion measures), the rigid
+    camera-body lever arm does not."""
+    world_from_cam = np.asarray(world_from_body, float) @ body_from_cam
+    world_from_cam[:3, 3] *= scale
+    return world_from_cam @ invert_transform(body_from_cam)

@@ -59,6 +59,10 @@ class Keyframe:
     points_world_vo: np.ndarray  # (N, 3) front-end landmark positions (initial guesses)
     image_left: np.ndarray  # (H, W) uint8, for the mapper and the loop closer
     image_right: np.ndarray | None
+    metric: bool = True
+    """False for a monocular front end's keyframes before the back end fixed the scale: its
+    VO poses and points are up to scale (the back end's alignment uses them; the loop closer
+    and the mapper skip them)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -81,6 +85,10 @@ class Estimate:
     landmark_ids: np.ndarray  # (M,) int64
     landmark_positions_world: np.ndarray  # (M, 3)
     map_generation: int = 0  # increments when a loop correction moves the whole map
+    vo_scale: float = 1.0
+    """Monocular: metres per unit of the front end's VO frame, found at initialisation. The
+    front end scales its map by it (camera centres and landmarks about the VO origin,
+    ``slam.core.geometry.scale_body_pose``) before it adopts the back end's world."""
 
     @staticmethod
     def pose_only(
@@ -201,6 +209,9 @@ class BackendOutput:
     keyframe_id: int
     update_ms: float  # wall time of add_keyframe()
     events: tuple[str, ...] = ()  # initialised, resets, IMU warnings since the last output
+    mono_scale: float = 0.0
+    """Monocular: the start's scale (metres per VO unit) the alignment tried at this
+    keyframe, accepted or not; 0 when none was tried."""
 
 
 @dataclass(frozen=True, eq=False)

@@ -238,6 +238,13 @@ class LandmarkMap:
         self.birth_centre[:n] = self.birth_centre[:n] @ rot.T + trans
         self.pixel_step[:n] = self.pixel_step[:n] @ rot.T
 
+    def scale(self, factor: float) -> None:
+        """Scale the whole map about the world origin (a monocular map made metric)."""
+        n = self._n
+        self.pos[:n] *= factor
+        self.birth_centre[:n] *= factor
+        self.pixel_step[:n] *= factor
+
     def retire(self, ids: np.ndarray, positions_world: np.ndarray) -> None:
         """Landmarks the front end stopped tracking, at their last known positions (a
         position the back end refined stays refined)."""

@@ -90,7 +90,10 @@ class FrontendStats:
 
 
 class FrontEnd:
-    """Stereo visual tracking with an optional gyro prior and back-end feedback."""
+    """Stereo visual tracking with an optional gyro prior and back-end feedback (the
+    monocular front end, ``slam.frontend.mono.MonoFrontEnd``, is a subclass)."""
+
+    monocular = False
 
     def __init__(
         self,
@@ -100,7 +103,7 @@ class FrontEnd:
         estimate_source: Callable[[], Estimate | None] | None = None,
         relocaliser: Any = None,
     ):
-        if not calib.is_stereo:
+        if not calib.is_stereo and not self.monocular:
             raise ValueError("the front end needs a stereo calibration (cam0 and cam1)")
         self.calib = calib
         self.cfg = cfg
@@ -115,7 +118,7 @@ class FrontEnd:
         self.K = self.cam0.K
         self.body_from_cam0 = calib.cameras[0].body_from_cam
         self.cam0_from_body = invert_transform(self.body_from_cam0)
-        self.stereo = StereoMatcher(calib, cfg)
+        self.stereo = StereoMatcher(calib, cfg) if calib.is_stereo else None
         self.stats = FrontendStats()
         # tracks
         self.px = np.zeros((0, 2), np.float32)
@@ -184,6 +187,8 @@ class FrontEnd:
             return
         if not self._rigid_estimate(est, fe_pose):
             return
+        if not self.reframed:
+            fe_pose = self._adopt_scale(est, fe_pose)
         correction = nearest_rigid(est.world_from_body @ invert_transform(fe_pose))
         self.stats.estimate_corrections += 1
         # The first initialised estimate moves us from the VO frame (the first body pose)
@@ -198,6 +203,11 @@ class FrontEnd:
             if lid in self.landmarks:
                 self.landmarks[lid] = np.asarray(pos, dtype=float)
         self.landmark_map.update_positions(est.landmark_ids, est.landmark_positions_world)
+
+    def _adopt_scale(self, est: Estimate, fe_pose: np.ndarray) -> np.ndarray:
+        """Before the back end's world is adopted: our pose of its keyframe in the scale of
+        that world (stereo: already metric; the monocular front end rescales its map)."""
+        return fe_pose
 
     def _move_world(self, correction: np.ndarray) -> None:
         """Move the local map and the poses by ``correction`` (new_from_old)."""
@@ -720,6 +730,7 @@ class FrontEnd:
         ages = np.concatenate([self.ages, np.zeros(len(new_px), np.int64)])
         right_px = np.full((len(px), 2), np.nan)
         if frame.right is not None and len(px):
+            assert self.stereo is not None
             pyr_right = build_pyramid(frame.right, self.cfg)
             world_from_cam = self.world_from_body @ self.body_from_cam0
             known_world = np.full((len(px), 3), np.nan)

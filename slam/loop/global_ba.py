@@ -366,6 +366,9 @@ def global_bundle_adjustment(
         )
         out = []
         for cam, mask, px in ((0, mask_l, left), (1, mask_r, right)):
+            if cam >= len(body_from_cam):  # monocular: no right camera
+                out.append(np.full(len(px), np.inf))
+                continue
             cam_from_world = np.linalg.inv(pose_rows @ body_from_cam[cam])
             uv, z = _project(cam_from_world, k_mats[cam], pts)
             err = np.linalg.norm(uv - px, axis=1)

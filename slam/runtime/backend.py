@@ -52,11 +52,16 @@ class _Estimator(WorkerCore):
         if est is not None and est.initialized and not self.was_initialized:
             self.was_initialized = True
             events.append(f"back end initialised at keyframe {kf.keyframe_id}")
+        attempts = self.backend.stats.mono_init_attempts
+        if attempts and attempts[-1]["t_ns"] == kf.t_ns:
+            a = attempts[-1]
+            verdict = "accepted" if a["accepted"] else f"rejected: {a['reason']}"
+            events.append(f"monocular alignment: scale {a['scale']:.3f} m per VO unit, {verdict}")
         resets = self.backend.stats.resets
         if resets > self.resets_seen:
             events.append(f"back end reset ({resets} so far)")
             self.resets_seen = resets
-        return BackendOutput(est, kf.keyframe_id, update_ms, tuple(events))
+        return BackendOutput(est, kf.keyframe_id, update_ms, tuple(events), self.backend.last_scale)
 
     def handle(self, msg: Any) -> list[Any]:
         if isinstance(msg, ImuBatch):
@@ -76,6 +81,8 @@ class _Estimator(WorkerCore):
             if isinstance(value, (int, float, str)):
                 out[key] = value
         out["failures"] = list(getattr(s, "failures", []))[:20]
+        if s.mono_init_attempts:
+            out["mono_init_attempts"] = list(s.mono_init_attempts)
         imu_stats = getattr(self.backend.imu, "stats", None)
         if imu_stats is not None:
             out["imu"] = {k: v for k, v in vars(imu_stats).items() if isinstance(v, (int, float))}

@@ -233,8 +233,8 @@ class LoopClosureStage(ProcessStage):
         if isinstance(msg, FrontendCorrection):
             self.odometry.frontend_correction(msg)
             return
-        if not isinstance(msg, Keyframe):
-            return
+        if not isinstance(msg, Keyframe) or not msg.metric:
+            return  # a monocular keyframe before the scale is known is not for the map
         self.odometry.add_keyframe(msg)
         refreshed = self.refresher.refreshed()
         odom = self.refresher.new_keyframe(msg.keyframe_id, msg.world_from_body_vo)

@@ -263,8 +263,8 @@ class MapperStage(ProcessStage):
             if poses and self.cfg.reintegrate_per_keyframe > 0 and self.error is None:
                 self.send(MapPoseUpdate(poses))
             return
-        if not isinstance(msg, Keyframe):
-            return
+        if not isinstance(msg, Keyframe) or not msg.metric:
+            return  # (a monocular keyframe before the scale is known)
         pose_odom = msg.world_from_body_vo @ self.body_from_cam0
         depth_range = _landmark_depth_range(msg, pose_odom)  # landmarks: odometry world
         pose = self.map_from_odom.get(msg.segment_id, np.eye(4)) @ pose_odom

@@ -145,6 +145,7 @@ class Run:
             "mapping": None if p.mapper is None else p.mapper.stats(),
             "live_map_corrections": p.recorder.map_jump_summary(),
             "map_reuse": map_reuse_summary(fe),
+            "frame_states": dict(p.recorder.states),
             "relocalisations": fe.relocalisations,
             "imu_bridged_losses": fe.imu_bridged,
             "track_refits": {"attempted": fe.track_refits, "kept": fe.track_refits_kept},

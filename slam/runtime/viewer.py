@@ -353,6 +353,8 @@ class RerunStage(Stage):
                 self._time(est.t_ns)
             for text in msg.events:
                 self.rec.log("log", self.rr.TextLog(text))
+            if msg.mono_scale > 0:  # monocular: the start's scale estimates, tried and accepted
+                self.rec.log("plots/mono_scale_m_per_vo_unit", self.rr.Scalars(msg.mono_scale))
             if est is None:
                 return
             if len(est.landmark_positions_world):

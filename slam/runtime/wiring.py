@@ -24,8 +24,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from datasets.cam0_only import Cam0Only
 from datasets.sequence import Sequence
 from slam.config import SlamConfig, validate_config
+from slam.core.errors import SlamError
 from slam.core.messages import (
     BackendOutput,
     FrontendCorrection,
@@ -34,6 +36,7 @@ from slam.core.messages import (
     MeshSnapshot,
     TrackingResult,
 )
+from slam.frontend.mono import MonoFrontEnd
 from slam.frontend.tracker import FrontEnd
 from slam.imu_buffer import ImuBuffer
 from slam.runtime.backend import BackendStage
@@ -88,7 +91,7 @@ def build(seq: Sequence, cfg: SlamConfig, session: ViewerSession | None) -> Pipe
             session.rec, seq.calibration, cfg.viz, seq.ground_truth, threaded, origin
         )
     loop = LoopClosureStage(seq.calibration, cfg.loop, threaded, idle) if cfg.loop_closure else None
-    frontend = FrontEnd(
+    frontend = (MonoFrontEnd if cfg.monocular else FrontEnd)(
         seq.calibration,
         cfg.frontend,
         imu_buffer,
@@ -153,6 +156,17 @@ def run_slam(
     run (``result.session.stop_server()`` ends it).
     """
     validate_config(cfg)  # again: callers may have changed it after loading
+    if cfg.monocular:
+        if not (cfg.use_imu and seq.calibration.imu is not None and seq.num_imu > 0):
+            raise SlamError(
+                f"{seq.name}: the monocular preset needs an IMU (it fixes the scale); "
+                "this sequence has none"
+            )
+        seq = Cam0Only.of(seq)  # a stereo source read as mono: cam0 and the IMU
+    elif not seq.calibration.is_stereo:
+        raise SlamError(
+            f"{seq.name}: one camera: the pipeline needs cam0 and cam1, or --config euroc-mono-imu"
+        )
     control = control or RunControl()
     with handle_stop_signals(control):
         result = _run(seq, cfg, out_dir, rerun_mode, progress, control)
