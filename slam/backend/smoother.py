@@ -25,6 +25,7 @@ retries the keyframe; a second failure adds the keyframe without visual factors.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -40,6 +41,7 @@ from slam.backend.imu import (
     preintegrate,
     preintegration_params,
 )
+from slam.backend.time_offset import OnlineTimeOffset
 from slam.backend.init import (
     MovingInitResult,
     is_still,
@@ -189,6 +191,7 @@ class VioBackend:
         self._last_good: _GoodState | None = None
         self._t_origin_ns: int | None = None
         self._estimate = Estimate.pose_only(0, -1, np.eye(4), initialized=False)
+        self.time_offset = OnlineTimeOffset(self.config) if self.config.time_offset_online else None
 
     # --- public API ------------------------------------------------------------------------------
     @property
@@ -202,7 +205,10 @@ class VioBackend:
 
     def add_imu(self, sample: ImuSample) -> bool:
         """Buffer one IMU sample (False when rejected: non-finite, saturated, out of order)."""
-        return self.imu.add(sample)
+        ok = self.imu.add(sample)
+        if ok and self.time_offset is not None:
+            self.time_offset.add_imu(sample)
+        return ok
 
     def estimate(self) -> Estimate:
         """The latest published snapshot (immutable)."""
@@ -232,6 +238,10 @@ class VioBackend:
                 self._states[-1].world_from_body_vo = None
             est = self._add_with_recovery(kf, kf_pose_vo)
         self._segment_id = kf.segment_id
+        if self.time_offset is not None:
+            self.time_offset.add_keyframe(kf)
+            if est is not None:
+                est = dataclasses.replace(est, time_offset=self.time_offset.state())
         self.stats.update_times_s.append(time.perf_counter() - t_start)
         self.stats.update_cpu_s.append(time.thread_time() - cpu_start)
         self.stats.factor_counts.append(self.n_factors())

@@ -33,6 +33,7 @@ class StereoFrame:
     left: np.ndarray  # (H, W) uint8, cam0
     right: np.ndarray | None  # (H, W) uint8, cam1, or None for mono
     index: int = -1  # frame number within the sequence, -1 when unknown
+    time_offset_ns: int = 0  # added to the camera stamp by the player (online time offset)
 
 
 SensorMessage = ImuSample | StereoFrame
@@ -59,6 +60,22 @@ class Keyframe:
     points_world_vo: np.ndarray  # (N, 3) front-end landmark positions (initial guesses)
     image_left: np.ndarray  # (H, W) uint8, for the mapper and the loop closer
     image_right: np.ndarray | None
+    time_offset_ns: int = 0  # its frame's: t_ns minus this is the camera's stamp
+    previous_keyframe_id: int = -1
+    # that keyframe's pose in this one's VO frame (moved by the corrections since), or None
+    previous_keyframe_world_from_body: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class TimeOffsetState:
+    """The back end's online camera-IMU time offset (``slam.backend.time_offset``): an image
+    stamped t shows IMU time t + offset, on top of the calibration's offset."""
+
+    estimate_ns: float
+    std_ns: float  # -1 while unknown
+    applied_ns: int  # what the player adds to frame stamps now
+    pairs: int  # keyframe pairs in the estimation window
+    status: str  # "waiting for motion", "too little motion", "applied", "beyond the bound"
 
 
 @dataclass(frozen=True, eq=False)
@@ -81,6 +98,7 @@ class Estimate:
     landmark_ids: np.ndarray  # (M,) int64
     landmark_positions_world: np.ndarray  # (M, 3)
     map_generation: int = 0  # increments when a loop correction moves the whole map
+    time_offset: TimeOffsetState | None = None  # the online camera-IMU offset (None: not run)
 
     @staticmethod
     def pose_only(

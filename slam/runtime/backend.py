@@ -76,6 +76,8 @@ class _Estimator(WorkerCore):
             if isinstance(value, (int, float, str)):
                 out[key] = value
         out["failures"] = list(getattr(s, "failures", []))[:20]
+        if self.backend.time_offset is not None:
+            out["time_offset"] = self.backend.time_offset.summary()
         imu_stats = getattr(self.backend.imu, "stats", None)
         if imu_stats is not None:
             out["imu"] = {k: v for k, v in vars(imu_stats).items() if isinstance(v, (int, float))}
@@ -168,6 +170,13 @@ class BackendStage(ProcessStage):
     def estimate(self) -> Estimate | None:
         value: Estimate | None = self.latest.get()
         return value
+
+    def time_offset_ns(self) -> int:
+        """The camera-IMU offset to stamp frames with now (0 until the back end knows it)."""
+        est = self.latest.get()
+        if est is None or est.time_offset is None:
+            return 0
+        return int(est.time_offset.applied_ns)
 
     def update_stats(self) -> dict[str, float]:
         with self._lock:

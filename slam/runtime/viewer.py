@@ -355,6 +355,10 @@ class RerunStage(Stage):
                 self.rec.log("log", self.rr.TextLog(text))
             if est is None:
                 return
+            if est.time_offset is not None:
+                off = est.time_offset
+                self.rec.log("plots/time_offset_ms/estimate", self.rr.Scalars(off.estimate_ns * 1e-6))
+                self.rec.log("plots/time_offset_ms/applied", self.rr.Scalars(off.applied_ns * 1e-6))
             if len(est.landmark_positions_world):
                 self.rec.log(
                     "world/landmarks/optimised",
