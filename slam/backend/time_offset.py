@@ -42,6 +42,7 @@ _H_S = 1e-3  # numeric derivative step in d
 _GRID_S = 1e-3  # grid step of the initial search
 _BIAS_PRIOR_RAD_S = 0.1
 _MIN_NOISE_RAD = 1e-5
+_MOVING_RAD_S = 0.2
 
 
 def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -112,6 +113,7 @@ class OnlineTimeOffset:
         self.history: list[tuple[float, float, float, float]] = []  # t_s, est, std, applied (ms)
         self._t_first_ns: int | None = None
         self._locked = False
+        self.moving = False  # the last pair turned faster than _MOVING_RAD_S
 
     # --- input ---------------------------------------------------------------------------------
     def add_imu(self, sample: ImuSample) -> None:
@@ -133,7 +135,10 @@ class OnlineTimeOffset:
         ):
             rel = np.asarray(prev_pose)[:3, :3].T @ np.asarray(kf.world_from_body_vo)[:3, :3]
             if np.all(np.isfinite(rel)):
-                xyzw = Rotation.from_matrix(rel).as_quat()
+                rot = Rotation.from_matrix(rel)
+                xyzw = rot.as_quat()
+                rate = float(np.linalg.norm(rot.as_rotvec())) / ((t_raw - last[2]) * 1e-9)
+                self.moving = rate > _MOVING_RAD_S
                 self._waiting.append(_Pair(last[2], t_raw, np.roll(xyzw, 1)))
         self._last = (kf.keyframe_id, kf.segment_id, t_raw, np.asarray(kf.world_from_body_vo))
         self._integrate()
@@ -299,6 +304,11 @@ class OnlineTimeOffset:
             return
         std_ms = self.std_s * 1e3 if np.isfinite(self.std_s) else -1.0
         self.history.append((t_s, self.offset_s * 1e3, std_ms, self.applied_ns * 1e-6))
+
+    @property
+    def settled(self) -> bool:
+        """Known (applied), or known to be out of reach: nothing more to wait for."""
+        return self.status in ("applied", "beyond the bound")
 
     # --- output --------------------------------------------------------------------------------
     def state(self) -> TimeOffsetState:
