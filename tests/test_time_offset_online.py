@@ -42,7 +42,9 @@ def _feed(
             est.add_imu(ImuSample(int(imu.t_ns[i]), imu.gyro_rad_s[i], imu.accel_m_s2[i]))
             i += 1
         pose = seq.world_from_body_at(t + offset_ns).copy()
-        pose[:3, :3] = pose[:3, :3] @ Rotation.from_rotvec(rng.normal(0, vis_noise_rad, 3)).as_matrix()
+        pose[:3, :3] = (
+            pose[:3, :3] @ Rotation.from_rotvec(rng.normal(0, vis_noise_rad, 3)).as_matrix()
+        )
         kf = Keyframe(
             t_ns=t,
             keyframe_id=k,

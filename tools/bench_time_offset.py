@@ -130,7 +130,9 @@ def main(argv: list[str] | None = None) -> int:
             row["check_error"] = check["error"]
         else:
             row["check_ms"] = check["time_offset"]["total_ms"]
-            row["check_rot_vs_truth_deg"] = _true_rotation_error_deg(check["rotation"]["body_from_cam0_rot"])
+            row["check_rot_vs_truth_deg"] = _true_rotation_error_deg(
+                check["rotation"]["body_from_cam0_rot"]
+            )
             row["check_rot_flagged"] = check["rotation"]["flagged"]
             row["check_offset_flagged"] = check["time_offset"]["flagged"]
         if args.no_runs or rot:

@@ -41,7 +41,6 @@ from slam.backend.imu import (
     preintegrate,
     preintegration_params,
 )
-from slam.backend.time_offset import OnlineTimeOffset
 from slam.backend.init import (
     MovingInitResult,
     is_still,
@@ -50,6 +49,7 @@ from slam.backend.init import (
     still_init_kalman,
     world_from_vo_gravity,
 )
+from slam.backend.time_offset import OnlineTimeOffset
 from slam.core.calibration import Calibration
 from slam.core.errors import SlamError
 from slam.core.geometry import invert_transform

@@ -236,13 +236,14 @@ class OnlineTimeOffset:
         dur = (t1 - t0) * 1e-9
         d = self.offset_s
         if not self._locked or self.updates % 25 == 0:
-            d = self._grid(t0, t1, vis, dur)
-            if d is None:
+            found = self._grid(t0, t1, vis, dur)
+            if found is None:
                 self.status = "beyond the bound"
                 self.std_s = float("inf")
                 self._record(t_raw_ns)
                 self.updates += 1
                 return
+            d = found
         prior_d = 1.0 / (cfg.time_offset_prior_sigma_ms * 1e-3) ** 2
         b = self.bias_rad_s
         cov = np.full((4, 4), np.inf)
