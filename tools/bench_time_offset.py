@@ -32,6 +32,20 @@ import numpy as np
 
 PROFILE = "aggressive"
 MOTION_START_S = 2.0  # the synthetic body is still for its first 2 s
+SETTLED_FROM_S = 7.0  # "once estimated": ATE of the poses from here on (lock ~1.5 s of motion)
+
+
+def _ate_from(seq: Path, tum: Path, from_s: float) -> float | None:
+    """ATE (SE(3)) of the rows of ``tum`` from ``from_s`` after its first one."""
+    from tools.batch.measure import ate_se3
+
+    if not tum.exists():
+        return None
+    lines = [ln for ln in tum.read_text().splitlines() if ln and not ln.startswith("#")]
+    t = np.array([float(ln.split()[0]) for ln in lines])
+    part = tum.with_name(f"{tum.stem}_from{from_s:g}s.tum")
+    part.write_text("\n".join(ln for ln, ti in zip(lines, t) if ti - t[0] >= from_s) + "\n")
+    return ate_se3(seq, part)
 
 
 def _slam(*args: str) -> subprocess.CompletedProcess[str]:
@@ -91,6 +105,10 @@ def _run(seq: Path, out: Path, online: bool) -> dict[str, Any]:
         if (out / "trajectory_loop_closed.tum").exists()
         else None,
     }
+    row["ate_live_settled_m"] = _ate_from(seq, out / "trajectory.tum", SETTLED_FROM_S)
+    row["ate_loop_closed_settled_m"] = _ate_from(
+        seq, out / "trajectory_loop_closed.tum", SETTLED_FROM_S
+    )
     toff = (stats.get("backend") or {}).get("time_offset")
     if toff:
         row["online_final_ms"] = toff["estimate_ms"]
