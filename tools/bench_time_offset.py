@@ -191,7 +191,7 @@ def _print_table(rows: list[dict[str, Any]], base: dict[str, Any] | None) -> Non
         cl_on, cl_off = r.get("on_ate_loop_closed_m"), r.get("off_ate_loop_closed_m")
         ratio = None if (b_ate is None or cl_on is None) else cl_on / b_ate
         print(
-            f"| {label} | {_f(check, '+.2f') if check is not None else r.get('check_error')} | "
+            f"| {label} | {_f(check, '+.2f') if check is not None else r.get('check_error', '-')} | "
             f"{_f(err, '+.2f')} | {_f(r.get('check_rot_vs_truth_deg'), '.2f')} | "
             f"{r.get('check_rot_flagged', '-')} | {_f(on20, '+.2f')} | "
             f"{_f(r.get('on_online_final_ms'), '+.2f')} | "
