@@ -91,6 +91,7 @@ def _run(seq: Path, out: Path, online: bool) -> dict[str, Any]:
         cfg = out.parent / f"{out.name}.yaml"
         cfg.write_text(
             f"preset: euroc-stereo-imu\nbackend:\n  time_offset_online: {str(online).lower()}\n"
+            "  time_offset_hold_s: 3.0\n"
         )
         res = _slam("run", str(seq), "--out", str(out), "--config", str(cfg), "--sequential",
                     "--speed", "max", "--no-progress")  # fmt: skip

@@ -253,6 +253,23 @@ class VioBackend:
             self._estimate = est
         return est
 
+    def flush_held(self) -> Estimate | None:
+        """Fuse the keyframes held for the time offset (the end of the input)."""
+        if not self._held:
+            return None
+        batch, self._held = self._held, []
+        to = self.time_offset
+        est: Estimate | None = None
+        for k in batch:
+            if to is not None and to.settled:
+                k = _restamped(k, to.applied_ns)
+            est = self._add_one(k) or est
+        if to is not None and est is not None:
+            est = dataclasses.replace(est, time_offset=to.state())
+        if est is not None:
+            self._estimate = est
+        return est
+
     def _hold_for_time_offset(self, kf: Keyframe) -> bool:
         """Whether to hold ``kf`` back: once initialised and moving, until the time offset is
         known (about a second of motion), at most ``time_offset_hold_s`` per run. A second of

@@ -337,6 +337,12 @@ class LoopFinal:
 
 
 @dataclass(frozen=True)
+class BackendFlush:
+    """The end of the back end's input: keyframes it still holds (waiting for the time offset)
+    are fused now."""
+
+
+@dataclass(frozen=True)
 class BackendFinal:
     """The back end's counters at the end of the run (stats.json ``backend``)."""
 

@@ -21,7 +21,15 @@ import numpy as np
 from slam.backend.config import BackendConfig
 from slam.core.calibration import Calibration
 from slam.core.latency import latency_summary
-from slam.core.messages import BackendFinal, BackendOutput, Estimate, ImuBatch, ImuSample, Keyframe
+from slam.core.messages import (
+    BackendFinal,
+    BackendFlush,
+    BackendOutput,
+    Estimate,
+    ImuBatch,
+    ImuSample,
+    Keyframe,
+)
 from slam.runtime.stage import Latest
 from slam.runtime.worker import ProcessStage, WorkerCore
 
@@ -64,6 +72,9 @@ class _Estimator(WorkerCore):
             return []
         if isinstance(msg, Keyframe):
             return [self.add_keyframe(msg)]
+        if isinstance(msg, BackendFlush):
+            est = self.backend.flush_held()
+            return [] if est is None else [BackendOutput(est, est.keyframe_id, 0.0)]
         return []
 
     def finish(self, interrupted: bool) -> BackendFinal:
@@ -165,6 +176,7 @@ class BackendStage(ProcessStage):
     def on_end(self) -> None:
         if self.use_process and not self.interrupted:
             self._flush_imu()
+        self.send(BackendFlush())  # keyframes held for the time offset
         self.end_worker()
 
     def estimate(self) -> Estimate | None:
