@@ -129,3 +129,35 @@ def test_no_imu_is_an_input_error() -> None:
     seq = make_synthetic_sequence("figure8", 0.5)
     with pytest.raises(InputError, match="no IMU"):
         check_calibration(iter(()), np.zeros(0, np.int64), np.zeros((0, 3)), seq.calibration)
+
+
+def _gyro_only_rotations(rate_amplitude_rad_s: float) -> tuple[VisualRotations, GyroIntegral]:
+    """Frame-pair rotations of a rig turning about two axes at the given amplitude, 20 s."""
+    t_imu = np.arange(0, 20_000_000_001, 5_000_000, dtype=np.int64)
+    t_s = t_imu * 1e-9
+    gyro = rate_amplitude_rad_s * np.stack(
+        [np.sin(2 * np.pi * 0.3 * t_s), np.cos(2 * np.pi * 0.2 * t_s), np.zeros_like(t_s)], axis=1
+    )
+    integral = GyroIntegral(t_imu, gyro)
+    t0 = np.arange(200_000_000, 19_000_000_000, 50_000_000, dtype=np.int64)
+    t1 = t0 + 50_000_000
+    vis = VisualRotations(t0, t1, integral.rotvec(t0, t1), np.full(len(t0), 100), len(t0))
+    return vis, integral
+
+
+@pytest.mark.parametrize(
+    ("amplitude_rad_s", "what"), [(0.0, "still"), (0.05, "too little rotation")]
+)
+def test_still_or_slowly_turning_rig_is_an_answer_not_a_number(
+    amplitude_rad_s: float, what: str
+) -> None:
+    """A still rig and one turning at 0.05 rad/s: "too little motion", never an offset."""
+    vis, gyro = _gyro_only_rotations(amplitude_rad_s)
+    with pytest.raises(CalibrationUnobservable, match="too little motion") as err:
+        estimate_time_offset(vis, gyro)
+    assert "\n" not in str(err.value), what
+    with pytest.raises(CalibrationUnobservable, match="too little motion"):
+        estimate_camera_rotation(vis, gyro, 0.0)
+    # the same rig turning at 1 rad/s gives its (zero) offset back: the answer is about motion
+    vis, gyro = _gyro_only_rotations(1.0)
+    assert abs(estimate_time_offset(vis, gyro).offset_ns) < 2e5

@@ -125,6 +125,26 @@ class BackendConfig:
     no_imu_velocity_sigma_m_s: float = bounded(1.0, gt=0)
     """Sigma of the velocity random-walk factor used when there is no IMU factor."""
 
+    # --- camera-IMU time offset (slam.backend.time_offset) --------------------------------------
+    time_offset_online: bool = True
+    """Estimate the camera-IMU time offset online (keyframe rotations against the gyro) and,
+    once known to ``time_offset_apply_std_ms``, stamp every frame with it (the IMU's clock)."""
+    time_offset_prior_sigma_ms: float = bounded(20.0, gt=0)
+    """Prior on the offset around the calibration's (0 on top of it)."""
+    time_offset_max_ms: float = bounded(50.0, gt=0, le=500)
+    """Search range: an offset beyond +- this is reported ("beyond the bound"), never applied."""
+    time_offset_window_s: float = bounded(30.0, gt=0)
+    """Keyframe pairs of the last this many seconds are used."""
+    time_offset_apply_std_ms: float = bounded(1.0, gt=0)
+    """The estimate is applied once its standard deviation is below this."""
+    time_offset_min_pairs: int = bounded(8, ge=3)
+    """Keyframe pairs needed before estimating."""
+    time_offset_hold_s: float = bounded(0.0, ge=0)
+    """Once initialised and moving, keyframes wait (the front end runs on alone) until the offset
+    is known, at most this long per run; then they are fused in the IMU clock. 0 (default):
+    never wait. 3 s measured better at 20-30 ms offsets (BENCHMARKS.md), but an interrupted run
+    then loses the held keyframes' smoothed poses (keyframes.tum), so it is off for now."""
+
     # --- divergence checks ----------------------------------------------------------------------
     max_velocity_m_s: float = bounded(20.0, gt=0)
     """A velocity norm above this is a divergence."""

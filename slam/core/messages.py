@@ -33,6 +33,7 @@ class StereoFrame:
     left: np.ndarray  # (H, W) uint8, cam0
     right: np.ndarray | None  # (H, W) uint8, cam1, or None for mono
     index: int = -1  # frame number within the sequence, -1 when unknown
+    time_offset_ns: int = 0  # added to the camera stamp by the player (online time offset)
 
 
 SensorMessage = ImuSample | StereoFrame
@@ -63,6 +64,22 @@ class Keyframe:
     """False for a monocular front end's keyframes before the back end fixed the scale: its
     VO poses and points are up to scale (the back end's alignment uses them; the loop closer
     and the mapper skip them)."""
+    time_offset_ns: int = 0  # its frame's: t_ns minus this is the camera's stamp
+    previous_keyframe_id: int = -1
+    # that keyframe's pose in this one's VO frame (moved by the corrections since), or None
+    previous_keyframe_world_from_body: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class TimeOffsetState:
+    """The back end's online camera-IMU time offset (``slam.backend.time_offset``): an image
+    stamped t shows IMU time t + offset, on top of the calibration's offset."""
+
+    estimate_ns: float
+    std_ns: float  # -1 while unknown
+    applied_ns: int  # what the player adds to frame stamps now
+    pairs: int  # keyframe pairs in the estimation window
+    status: str  # "waiting for motion", "too little motion", "applied", "beyond the bound"
 
 
 @dataclass(frozen=True, eq=False)
@@ -89,6 +106,7 @@ class Estimate:
     """Monocular: metres per unit of the front end's VO frame, found at initialisation. The
     front end scales its map by it (camera centres and landmarks about the VO origin,
     ``slam.core.geometry.scale_body_pose``) before it adopts the back end's world."""
+    time_offset: TimeOffsetState | None = None  # the online camera-IMU offset (None: not run)
 
     @staticmethod
     def pose_only(
@@ -328,6 +346,12 @@ class LoopFinal:
     stats: dict[str, Any]  # the stats.json ``loop_closure`` section
     keyframe_map_from_odom: dict[int, np.ndarray]
     corrected_poses: dict[int, np.ndarray]  # keyframe id -> map_from_body
+
+
+@dataclass(frozen=True)
+class BackendFlush:
+    """The end of the back end's input: keyframes it still holds (waiting for the time offset)
+    are fused now."""
 
 
 @dataclass(frozen=True)

@@ -779,6 +779,7 @@ class FrontEnd:
         self.kf_t_ns = frame.t_ns
         self.kf_px = {int(i): p for i, p in zip(ids[has_lm], px[has_lm], strict=True)}
         self.kf_num_landmarks = int(has_lm.sum())
+        prev_pose = self.kf_poses.get(kf_id - 1)  # moved by the corrections since
         self.kf_poses[kf_id] = self.world_from_body.copy()
         if len(self.kf_poses) > MAX_STORED_KEYFRAME_POSES:
             del self.kf_poses[min(self.kf_poses)]
@@ -802,4 +803,7 @@ class FrontEnd:
             points_world_vo=np.array([self.landmarks[i] for i in lm_ids.tolist()]).reshape(-1, 3),
             image_left=frame.left,
             image_right=frame.right,
+            time_offset_ns=frame.time_offset_ns,
+            previous_keyframe_id=kf_id - 1 if prev_pose is not None else -1,
+            previous_keyframe_world_from_body=None if prev_pose is None else prev_pose.copy(),
         )

@@ -21,7 +21,15 @@ import numpy as np
 from slam.backend.config import BackendConfig
 from slam.core.calibration import Calibration
 from slam.core.latency import latency_summary
-from slam.core.messages import BackendFinal, BackendOutput, Estimate, ImuBatch, ImuSample, Keyframe
+from slam.core.messages import (
+    BackendFinal,
+    BackendFlush,
+    BackendOutput,
+    Estimate,
+    ImuBatch,
+    ImuSample,
+    Keyframe,
+)
 from slam.runtime.stage import Latest
 from slam.runtime.worker import ProcessStage, WorkerCore
 
@@ -69,6 +77,9 @@ class _Estimator(WorkerCore):
             return []
         if isinstance(msg, Keyframe):
             return [self.add_keyframe(msg)]
+        if isinstance(msg, BackendFlush):
+            est = self.backend.flush_held()
+            return [] if est is None else [BackendOutput(est, est.keyframe_id, 0.0)]
         return []
 
     def finish(self, interrupted: bool) -> BackendFinal:
@@ -83,6 +94,8 @@ class _Estimator(WorkerCore):
         out["failures"] = list(getattr(s, "failures", []))[:20]
         if s.mono_init_attempts:
             out["mono_init_attempts"] = list(s.mono_init_attempts)
+        if self.backend.time_offset is not None:
+            out["time_offset"] = self.backend.time_offset.summary()
         imu_stats = getattr(self.backend.imu, "stats", None)
         if imu_stats is not None:
             out["imu"] = {k: v for k, v in vars(imu_stats).items() if isinstance(v, (int, float))}
@@ -170,11 +183,19 @@ class BackendStage(ProcessStage):
     def on_end(self) -> None:
         if self.use_process and not self.interrupted:
             self._flush_imu()
+        self.send(BackendFlush())  # keyframes held for the time offset
         self.end_worker()
 
     def estimate(self) -> Estimate | None:
         value: Estimate | None = self.latest.get()
         return value
+
+    def time_offset_ns(self) -> int:
+        """The camera-IMU offset to stamp frames with now (0 until the back end knows it)."""
+        est = self.latest.get()
+        if est is None or est.time_offset is None:
+            return 0
+        return int(est.time_offset.applied_ns)
 
     def update_stats(self) -> dict[str, float]:
         with self._lock:

@@ -8,7 +8,9 @@ is dropped and counted; otherwise the player waits for it.
 
 from __future__ import annotations
 
+import dataclasses
 import time
+from collections import deque
 from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -32,6 +34,37 @@ class PlayState:
     @property
     def sequence_s(self) -> float:
         return 0.0 if self.t_first_ns is None else (self.t_last_ns - self.t_first_ns) * 1e-9
+
+
+def restamped(
+    messages: Iterator[ImuSample | StereoFrame], offset_ns: Callable[[], int]
+) -> Iterator[ImuSample | StereoFrame]:
+    """``messages`` with every frame stamped in the IMU's clock: its stamp plus the camera-IMU
+    offset the back end estimates online (``offset_ns()``, read when the frame arrives; it says
+    which it carries, ``StereoFrame.time_offset_ns``). A frame whose new stamp is ahead of the
+    IMU waits for the samples up to it, so every stage still sees the IMU up to each frame.
+    Stamps stay increasing."""
+    held: deque[StereoFrame] = deque()
+    last_ns = -(2**62)
+    try:
+        for msg in messages:
+            if isinstance(msg, ImuSample):
+                while held and held[0].t_ns <= msg.t_ns:
+                    yield held.popleft()
+                yield msg
+                continue
+            d = int(offset_ns())
+            t_ns = max(msg.t_ns + d, last_ns + 1)
+            last_ns = t_ns
+            frame = dataclasses.replace(msg, t_ns=t_ns, time_offset_ns=t_ns - msg.t_ns)
+            if held or d > 0:
+                held.append(frame)
+            else:
+                yield frame
+        yield from held
+    finally:
+        if isinstance(messages, Generator):
+            messages.close()
 
 
 def real_time_factor(sequence_s: float, wall_s: float) -> float:

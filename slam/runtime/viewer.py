@@ -357,6 +357,12 @@ class RerunStage(Stage):
                 self.rec.log("plots/mono_scale_m_per_vo_unit", self.rr.Scalars(msg.mono_scale))
             if est is None:
                 return
+            if est.time_offset is not None:
+                off = est.time_offset
+                self.rec.log(
+                    "plots/time_offset_ms/estimate", self.rr.Scalars(off.estimate_ns * 1e-6)
+                )
+                self.rec.log("plots/time_offset_ms/applied", self.rr.Scalars(off.applied_ns * 1e-6))
             if len(est.landmark_positions_world):
                 self.rec.log(
                     "world/landmarks/optimised",
