@@ -374,6 +374,7 @@ class LandmarkMap:
             iterations=6,
             max_shift_px=2.0,
             max_rms=params.max_rms,
+            min_ncc=params.min_ncc,
         )
         ok = np.flatnonzero(fit.ok)
         return MapMatches(
