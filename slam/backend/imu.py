@@ -123,7 +123,7 @@ def preintegrate(
     pieces = integration_pieces(t, g, a, t0_ns, t1_ns, max_gap_s)
     if pieces is None:
         return None
-    if scale_error is not None and (scale_error[0] > 0 or scale_error[1] > 0):
+    if imu is not None and scale_error is not None and max(scale_error) > 0:
         params = scale_error_params(imu, pieces, scale_error[0], scale_error[1])
     pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
     integrate_pieces(pim, pieces)
