@@ -75,7 +75,9 @@ class StereoMatcher:
                 guess[known] = self.cam1.project(pts_c1[known])
         if self.cfg.klt_match_brightness:
             # the two cameras' gains differ (a few %): scale the brighter image down first
-            ratio = brightness_ratio(pyr_left, pyr_right, pixels_left, guess)
+            # (around the left pixels in both images: the same ratio whatever the guesses, so
+            # known points and the nominal-depth start match the same)
+            ratio = brightness_ratio(pyr_left, pyr_right, pixels_left, pixels_left)
             pyr_left, pyr_right = match_brightness(pyr_left, pyr_right, ratio)
         px_right = np.zeros((n, 2), np.float32)
         ok = np.zeros(n, dtype=bool)
