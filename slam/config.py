@@ -70,12 +70,21 @@ class FrontendConfig:
     """Inverse-compositional iterations per fit. Started from the last fit (a few frames
     old), 3 gave the same tracks as 6 (median error after 4 s 0.098 / 0.099 px, measured with
     bilinear sampling)."""
+    affine_min_ncc: float = bounded(0.85, gt=0, le=1, hint=_AFFINE_OFF)
+    """A re-fit is kept only where the fitted patch correlates with the birth patch by at
+    least this much (normalised cross-correlation; the fit matches gain and bias, so exposure
+    changes do not fail it, a wrong place does)."""
     affine_period_frames: int = bounded(4, ge=1, hint=_AFFINE_OFF)
     """Each track is re-fitted every this many frames (a quarter of the tracks per frame: ~1
     ms, instead of ~4 ms for all of them on the keyframe's frame, the front end's slowest)."""
     # bounds: calcOpticalFlowPyrLK asserts winSize > 2
     klt_window_px: int = bounded(21, ge=3)
     """KLT window side, pixels (17 was ~20% cheaper but lost track on the aggressive profile)."""
+    klt_match_brightness: bool = True
+    """Before KLT (frame to frame, and left to right), scale the brighter image down by the
+    two images' brightness ratio around the tracked points (``features.brightness_ratio``):
+    KLT assumes constant brightness, which an auto-exposure gain step or a stereo gain
+    mismatch breaks."""
     klt_pyramid_levels: int = bounded(3, ge=0)
     """KLT pyramid levels above the base image."""
     klt_fb_max_error_px: float = bounded(0.7, gt=0)

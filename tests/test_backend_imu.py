@@ -159,3 +159,36 @@ def test_dead_reckoning_follows_the_simulated_truth():
         propagate_pose(buf.window(kf1.t_ns, t_end), kf1.t_ns, t_end, pose, *np.zeros((3, 3)))
         is None
     )  # not covered
+
+
+def test_scale_error_noise_covers_a_gyro_scale_error():
+    """0.5 % gyro scale error on a 3 rad/s turn over 0.2 s: the rotation it puts into the
+    preintegration is ~30 sigma off under the calibration's noise, within ~1 sigma under the
+    scale-error model; a still interval keeps the calibration's noise."""
+    from slam.backend.imu import scale_error_params
+
+    imu = ImuCalibration()
+    dt, n = 0.005, 40
+    rate = np.array([0.0, 0.0, 3.0])
+    t_ns = np.arange(n + 1) * 5_000_000
+    gyro = np.tile(rate * 1.005, (n + 1, 1))
+    accel = np.tile([0.0, 0.0, 9.81], (n + 1, 1))
+    pieces = integration_pieces(t_ns, gyro, accel, 0, int(t_ns[-1]), 0.1)
+    assert pieces is not None
+    bias = make_bias(np.zeros(3), np.zeros(3))
+
+    def rotation_sigmas(params: gtsam.PreintegrationCombinedParams) -> float:
+        pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
+        integrate_pieces(pim, pieces)
+        err = pim.deltaRij().localCoordinates(gtsam.Rot3.Rz(3.0 * n * dt))
+        cov = pim.preintMeasCov()[:3, :3]  # rotation first
+        return float(np.sqrt(err @ np.linalg.solve(cov, err)))
+
+    assert rotation_sigmas(preintegration_params(imu)) > 20.0
+    assert rotation_sigmas(scale_error_params(imu, pieces, 0.005, 0.005)) < 1.5
+    still = integration_pieces(t_ns, np.zeros((n + 1, 3)), accel, 0, int(t_ns[-1]), 0.1)
+    assert still is not None
+    p_still = scale_error_params(imu, still, 0.005, 0.0)
+    np.testing.assert_allclose(
+        p_still.getGyroscopeCovariance(), preintegration_params(imu).getGyroscopeCovariance()
+    )

@@ -26,6 +26,14 @@ class BackendConfig:
     imu_buffer_s: float = bounded(30.0, gt=0)
     """IMU history kept (seconds before the newest keyframe) for integration and resets."""
 
+    imu_gyro_scale_error: float = bounded(0.005, ge=0, le=0.2)
+    """Gyro scale / axis error (fraction) the IMU noise model allows for: each keyframe
+    interval's gyro noise density grows by this times the mean rotation rate times the root
+    of the interval (``slam/backend/imu.py`` ``scale_error_params``). 0: the calibration's
+    densities as they are."""
+    imu_accel_scale_error: float = bounded(0.005, ge=0, le=0.2)
+    """The same for the accelerometer (times the mean specific force, gravity included)."""
+
     # --- initialisation -------------------------------------------------------------------------
     init_mode: str = "auto"
     """"auto" (still start if the IMU before the first keyframe is still, else moving start),

@@ -21,12 +21,17 @@ from slam.core.calibration import ImuCalibration
 from slam.imu_buffer import ImuBuffer
 
 
-def preintegration_params(imu: ImuCalibration) -> gtsam.PreintegrationCombinedParams:
-    """GTSAM combined-preintegration parameters from Kalibr-style noise densities."""
+def preintegration_params(
+    imu: ImuCalibration, gyro_density: float | None = None, accel_density: float | None = None
+) -> gtsam.PreintegrationCombinedParams:
+    """GTSAM combined-preintegration parameters from Kalibr-style noise densities (the
+    calibration's, or ``gyro_density`` / ``accel_density`` in their place)."""
     params = gtsam.PreintegrationCombinedParams.MakeSharedU(imu.gravity_m_s2)
     eye = np.eye(3)
-    params.setGyroscopeCovariance(imu.gyro_noise_density**2 * eye)
-    params.setAccelerometerCovariance(imu.accel_noise_density**2 * eye)
+    g_nd = imu.gyro_noise_density if gyro_density is None else gyro_density
+    a_nd = imu.accel_noise_density if accel_density is None else accel_density
+    params.setGyroscopeCovariance(g_nd**2 * eye)
+    params.setAccelerometerCovariance(a_nd**2 * eye)
     params.setBiasOmegaCovariance(imu.gyro_random_walk**2 * eye)
     params.setBiasAccCovariance(imu.accel_random_walk**2 * eye)
     params.setIntegrationCovariance(1e-8 * eye)
@@ -105,13 +110,53 @@ def preintegrate(
     t0_ns: int,
     t1_ns: int,
     max_gap_s: float,
+    imu: ImuCalibration | None = None,
+    scale_error: tuple[float, float] | None = None,
 ) -> gtsam.PreintegratedCombinedMeasurements | None:
     """Preintegrated measurements between two keyframe times, or None (no IMU factor) when the
-    buffer does not cover [t0_ns, t1_ns] or a gap in it is longer than ``max_gap_s``."""
+    buffer does not cover [t0_ns, t1_ns] or a gap in it is longer than ``max_gap_s``.
+
+    ``scale_error`` (gyro, accel; fractions) with the calibration ``imu``: the noise of this
+    interval allows for that much scale / axis error (:func:`scale_error_params`) instead of
+    ``params``' fixed densities."""
     t, g, a = buffer.arrays()
     pieces = integration_pieces(t, g, a, t0_ns, t1_ns, max_gap_s)
     if pieces is None:
         return None
+    if imu is not None and scale_error is not None and max(scale_error) > 0:
+        params = scale_error_params(imu, pieces, scale_error[0], scale_error[1])
     pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
     integrate_pieces(pim, pieces)
     return pim
+
+
+def scale_error_params(
+    imu: ImuCalibration,
+    pieces: tuple[np.ndarray, np.ndarray, np.ndarray],
+    gyro_scale_error: float,
+    accel_scale_error: float,
+) -> gtsam.PreintegrationCombinedParams:
+    """Preintegration parameters for one interval whose white noise also covers a scale (or
+    axis) error of the sensors, a systematic error proportional to what they read.
+
+    Why: a real IMU's gyro and accelerometer scale factors are off by a few tenths of a percent
+    (0.3 % std in ``slam synth --camera realistic``). On a fast rotation (3 rad/s) that is an
+    error of 0.01-0.02 rad/s, 60-120x the EuRoC gyro's white noise over a keyframe interval,
+    and a back end that trusts the calibration's densities bends the trajectory to it (8 s of
+    ``aggressive`` with 0.3 % scale errors: live ATE 19.6 mm instead of 2.9). An error ``s``
+    times the reading ``w`` accumulates ``s |w| T`` over an interval ``T``; white noise of
+    density ``q`` accumulates ``q sqrt(T)``. Equal at ``q = s * mean|w| * sqrt(T)``, added in
+    quadrature to the calibration's density (the accelerometer's against its reading less
+    nothing: gravity is part of what it reads). Intervals without motion keep the calibration's
+    densities, so a still or slow IMU is trusted as before.
+    """
+    dt_s, gyro, accel = pieces
+    span_s = float(dt_s.sum())
+    if span_s <= 0.0:
+        return preintegration_params(imu)
+    mean_rate = float(np.sum(np.linalg.norm(gyro, axis=1) * dt_s) / span_s)
+    mean_accel = float(np.sum(np.linalg.norm(accel, axis=1) * dt_s) / span_s)
+    root_t = np.sqrt(span_s)
+    g_nd = np.hypot(imu.gyro_noise_density, gyro_scale_error * mean_rate * root_t)
+    a_nd = np.hypot(imu.accel_noise_density, accel_scale_error * mean_accel * root_t)
+    return preintegration_params(imu, float(g_nd), float(a_nd))

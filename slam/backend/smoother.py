@@ -611,7 +611,16 @@ class VioBackend:
         prev_bias = vals.atConstantBias(B(prev.k))
         graph = gtsam.NonlinearFactorGraph()
         new_values = gtsam.Values()
-        pim = preintegrate(self.imu, self._params, prev_bias, prev.t_ns, kf.t_ns, cfg.imu_gap_max_s)
+        pim = preintegrate(
+            self.imu,
+            self._params,
+            prev_bias,
+            prev.t_ns,
+            kf.t_ns,
+            cfg.imu_gap_max_s,
+            self.imu_calibration,
+            (cfg.imu_gyro_scale_error, cfg.imu_accel_scale_error),
+        )
         if pim is not None:
             pred = pim.predict(gtsam.NavState(prev_pose, prev_vel), prev_bias)
             pose_guess, vel_guess = pred.pose(), pred.velocity()

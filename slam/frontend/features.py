@@ -85,6 +85,54 @@ def build_pyramid(image: np.ndarray, cfg: FrontendConfig) -> np.ndarray:
     return image
 
 
+def brightness_ratio(
+    image_from: np.ndarray, image_to: np.ndarray, px_from: np.ndarray, px_to: np.ndarray
+) -> float:
+    """How much brighter ``image_to`` is than ``image_from`` around corresponding points
+    ``px_from`` / ``px_to`` (N, 2): the median ratio of their local mean intensities (1 with
+    fewer than 8 points). The means are taken on 8x-reduced images (a 0.1 ms box filter), so
+    a few pixels of error in ``px_to`` (a predicted position) do not matter.
+
+    Why: pyramidal KLT assumes constant brightness. An auto-exposure gain step (3 dB) between
+    two frames moved its tracks by 0.5 px (median) and lost 16 % of them on a textured image;
+    a 3 % stereo gain mismatch biased left-right matches. The caller scales the brighter image
+    down by this ratio first (:func:`match_brightness`)."""
+    n = min(len(px_from), len(px_to))
+    if n < 8:
+        return 1.0
+    means = []
+    for image, px in ((image_from, px_from[:n]), (image_to, px_to[:n])):
+        h, w = image.shape[:2]
+        small = cv2.resize(image, (max(w // 8, 1), max(h // 8, 1)), interpolation=cv2.INTER_AREA)
+        xy = np.asarray(px, np.float32) / 8.0 - 0.5
+        means.append(
+            cv2.remap(
+                small.astype(np.float32),
+                np.ascontiguousarray(xy[:, 0:1]),
+                np.ascontiguousarray(xy[:, 1:2]),
+                interpolation=cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_REPLICATE,
+            ).ravel()
+        )
+    good = (means[0] > 8.0) & (means[1] > 8.0) & (means[0] < 250.0) & (means[1] < 250.0)
+    if good.sum() < 8:
+        return 1.0
+    return float(np.median(means[1][good] / means[0][good]))
+
+
+def match_brightness(
+    image_a: np.ndarray, image_b: np.ndarray, ratio_b_over_a: float, tolerance: float = 0.01
+) -> tuple[np.ndarray, np.ndarray]:
+    """``image_a`` and ``image_b`` with the brighter one scaled down by ``ratio_b_over_a``
+    (:func:`brightness_ratio`), so that neither saturates; as they are when the ratio is
+    within ``tolerance`` of 1."""
+    if abs(np.log(max(ratio_b_over_a, 1e-6))) <= tolerance:
+        return image_a, image_b
+    if ratio_b_over_a > 1.0:
+        return image_a, cv2.convertScaleAbs(image_b, alpha=1.0 / ratio_b_over_a)
+    return cv2.convertScaleAbs(image_a, alpha=ratio_b_over_a), image_b
+
+
 def track_klt(
     pyr_from: np.ndarray,
     pyr_to: np.ndarray,

@@ -381,6 +381,7 @@ class LandmarkMap:
             iterations=6,
             max_shift_px=2.0,
             max_rms=params.max_rms,
+            min_ncc=0.0,  # matchTemplate's NCC (params.min_ncc) and uniqueness checked it
         )
         ok = np.flatnonzero(fit.ok)
         return MapMatches(

@@ -16,7 +16,7 @@ import numpy as np
 from slam.config import FrontendConfig
 from slam.core.calibration import Calibration
 from slam.core.geometry import skew, transform_points
-from slam.frontend.features import track_klt
+from slam.frontend.features import brightness_ratio, match_brightness, track_klt
 
 
 @dataclass(frozen=True, eq=False)
@@ -73,6 +73,12 @@ class StereoMatcher:
             known = np.isfinite(pts_c1).all(axis=1) & (pts_c1[:, 2] > self.cfg.min_depth_m)
             if known.any():
                 guess[known] = self.cam1.project(pts_c1[known])
+        if self.cfg.klt_match_brightness:
+            # the two cameras' gains differ (a few %): scale the brighter image down first
+            # (around the left pixels in both images: the same ratio whatever the guesses, so
+            # known points and the nominal-depth start match the same)
+            ratio = brightness_ratio(pyr_left, pyr_right, pixels_left, pixels_left)
+            pyr_left, pyr_right = match_brightness(pyr_left, pyr_right, ratio)
         px_right = np.zeros((n, 2), np.float32)
         ok = np.zeros(n, dtype=bool)
         if known.any():

@@ -36,7 +36,13 @@ from slam.core.geometry import (
 from slam.core.messages import Estimate, FrontendCorrection, Keyframe, StereoFrame, TrackingResult
 from slam.cputime import runqueue_wait_ns, thread_cpu_s
 from slam.frontend.affine_klt import TrackTemplates
-from slam.frontend.features import build_pyramid, detect_features, track_klt
+from slam.frontend.features import (
+    brightness_ratio,
+    build_pyramid,
+    detect_features,
+    match_brightness,
+    track_klt,
+)
 from slam.frontend.landmark_map import LandmarkMap, MapMatches, SearchParams
 from slam.frontend.stereo import StereoMatcher
 from slam.imu_buffer import ImuBuffer, integrate_gyro, propagate_pose
@@ -129,7 +135,9 @@ class FrontEnd:
         self.reobserved_ids: set[int] = set()  # tracked ids found again in the map
         self._revisit = False  # the last keyframe's search saw enough of the map
         self._anchor_kf = -1  # birth keyframe of the old landmarks this frame is tracked on
-        self.templates = TrackTemplates(cfg.affine_half_window_px, cfg.affine_iterations)
+        self.templates = TrackTemplates(
+            cfg.affine_half_window_px, cfg.affine_iterations, cfg.affine_min_ncc
+        )
         self.pyr_prev: np.ndarray | None = None
         self.t_prev_ns = 0
         # pose state
@@ -439,7 +447,13 @@ class FrontEnd:
             rays1 = rays @ rot_c1_c0.T
             if (rays1[:, 2] > 0.1).all():
                 guess = self.cam0.project(rays1)
-        px, ok = track_klt(self.pyr_prev, pyr, self.px, self.cfg, guess_to=guess)
+        pyr_from, pyr_to = self.pyr_prev, pyr
+        if self.cfg.klt_match_brightness:
+            ratio = brightness_ratio(
+                self.pyr_prev, pyr, self.px, self.px if guess is None else guess
+            )
+            pyr_from, pyr_to = match_brightness(self.pyr_prev, pyr, ratio)
+        px, ok = track_klt(pyr_from, pyr_to, self.px, self.cfg, guess_to=guess)
         num_tracked = int(ok.sum())
         self.px, self.ids, self.ages = px[ok], self.ids[ok], self.ages[ok] + 1
         if self.cfg.affine_refinement:
