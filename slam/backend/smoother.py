@@ -251,18 +251,10 @@ class VioBackend:
             if self._held:
                 self._held_s += (kf.t_ns - self._held[0].t_ns) * 1e-9
             batch, self._held = [*self._held, kf], []
-            if to is not None and to.settled and self._initialized:
-                # held keyframes (and any stamped before the offset was known) in the IMU clock
-                batch = [_restamped(k, to.applied_ns) for k in batch]
-            for k in batch:
-                est = self._add_one(k) or est
-        if to is not None and est is not None:
-            est = dataclasses.replace(est, time_offset=to.state())
+            est = self._fuse(batch)
         self.stats.update_times_s.append(time.perf_counter() - t_start)
         self.stats.update_cpu_s.append(time.thread_time() - cpu_start)
         self.stats.factor_counts.append(self.n_factors())
-        if est is not None:
-            self._estimate = est
         return est
 
     def flush_held(self) -> Estimate | None:
@@ -270,11 +262,17 @@ class VioBackend:
         if not self._held:
             return None
         batch, self._held = self._held, []
+        return self._fuse(batch)
+
+    def _fuse(self, batch: list[Keyframe]) -> Estimate | None:
+        """Add keyframes in order; once the time offset is applied, held keyframes (and any
+        stamped before the offset was known) go in the IMU clock. The newest estimate, with
+        the offset's state, becomes the published one."""
         to = self.time_offset
+        if to is not None and to.settled and self._initialized:
+            batch = [_restamped(k, to.applied_ns) for k in batch]
         est: Estimate | None = None
         for k in batch:
-            if to is not None and to.settled:
-                k = _restamped(k, to.applied_ns)
             est = self._add_one(k) or est
         if to is not None and est is not None:
             est = dataclasses.replace(est, time_offset=to.state())

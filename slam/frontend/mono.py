@@ -98,9 +98,10 @@ def _reprojection_px(cam_from_world: np.ndarray, pts: np.ndarray, rays: np.ndarr
     return np.where(np.isfinite(err), err, np.inf), z
 
 
-def _ray_angle_deg(world_from_cam_a: np.ndarray, world_from_cam_b: np.ndarray, pts, rays_a, rays_b):
+def _ray_angle_deg(
+    world_from_cam_a: np.ndarray, world_from_cam_b: np.ndarray, pts: np.ndarray
+) -> np.ndarray:
     """Angle at each point between the two viewing rays, degrees."""
-    del rays_a, rays_b
     da = pts - world_from_cam_a[..., :3, 3]
     db = pts - world_from_cam_b[..., :3, 3]
     cos = np.sum(da * db, axis=1) / (np.linalg.norm(da, axis=1) * np.linalg.norm(db, axis=1))
@@ -322,7 +323,7 @@ class MonoFrontEnd(FrontEnd):
         pts = triangulate_two_view(c0, c1_from_c0, n0[inl], n1[inl])
         e0, z0 = _reprojection_px(c0, pts, n0[inl], f)
         e1, z1 = _reprojection_px(c1_from_c0, pts, n1[inl], f)
-        angle = _ray_angle_deg(c0, invert_transform(c1_from_c0), pts, None, None)
+        angle = _ray_angle_deg(c0, invert_transform(c1_from_c0), pts)
         good = (
             (z0 > 0) & (z1 > 0) & (e0 < cfg.mono_max_reprojection_px)
             & (e1 < cfg.mono_max_reprojection_px) & np.isfinite(pts).all(axis=1)
@@ -433,9 +434,7 @@ class MonoFrontEnd(FrontEnd):
         f = float(self.cam0.fx)
         ea, za = _reprojection_px(cam_a, pts, rays_a, f)
         eb, zb = _reprojection_px(cam_from_world, pts, rays_b, f)
-        angle = _ray_angle_deg(
-            np.array([invert_transform(c) for c in cam_a]), world_from_cam, pts, None, None
-        )
+        angle = _ray_angle_deg(np.array([invert_transform(c) for c in cam_a]), world_from_cam, pts)
         fits = (za > 0) & (zb > 0) & (ea < cfg.mono_max_reprojection_px)
         fits &= (eb < cfg.mono_max_reprojection_px) & np.isfinite(pts).all(axis=1)
         made = fits & (angle >= cfg.mono_min_angle_deg)
