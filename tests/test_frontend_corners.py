@@ -60,3 +60,23 @@ def test_a_zero_refinement_window_is_a_config_error(tmp_path) -> None:
     bad.write_text("preset: euroc-stereo-imu\nfrontend:\n  corner_subpixel_half_window_px: 0\n")
     with pytest.raises(SlamError, match="corner_subpixel: false"):
         load_config(str(bad))
+
+
+def test_essential_ransac_recovers_a_motion_and_refuses_no_motion():
+    """Five-point RANSAC on normalised matches: a translation's essential matrix satisfies the
+    epipolar constraint on every match; identical points (no motion) give None, not an
+    exception (OpenCV 5.1 raises there)."""
+    from slam.frontend.features import essential_ransac
+
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(-1, 1, (60, 2)), rng.uniform(2, 5, 60)])
+    x0 = pts[:, :2] / pts[:, 2:]
+    moved = pts - np.array([0.2, 0.05, 0.0])
+    x1 = moved[:, :2] / moved[:, 2:]
+    found = essential_ransac(x0, x1, 1e-3)
+    assert found is not None
+    e, mask = found
+    h0, h1 = np.hstack([x0, np.ones((60, 1))]), np.hstack([x1, np.ones((60, 1))])
+    assert np.abs(np.einsum("ij,jk,ik->i", h1, e, h0)).max() < 1e-6
+    assert mask.sum() == 60
+    assert essential_ransac(x0, x0.copy(), 1e-3) is None

@@ -59,12 +59,13 @@ def pair_rotation(
     """cam0_from_cam1 rotation vector from normalised matches x0 -> x1 (N, 2), and inliers."""
     if len(x0) < MIN_TRACKS:
         return None
-    e, mask = cv2.findEssentialMat(
-        x0, x1, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=threshold_rad
-    )
+    from slam.frontend.features import essential_ransac
+
+    found = essential_ransac(x0, x1, threshold_rad)
     rot_1_from_0 = None
     inliers = 0
-    if e is not None and e.shape == (3, 3):
+    if found is not None:
+        e, mask = found
         n_in, r, _t, mask2 = cv2.recoverPose(e, x0, x1, np.eye(3), mask=mask)
         inliers = int(n_in)
         # parallax left after removing the rotation: too little and E is ill-conditioned

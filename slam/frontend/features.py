@@ -191,3 +191,24 @@ def track_klt(
     fb = np.linalg.norm(p0_back.reshape(-1, 2) - p0.reshape(-1, 2), axis=1)
     ok &= (st2.ravel() == 1) & (fb < cfg.klt_fb_max_error_px)
     return pts.astype(np.float32), ok
+
+
+def essential_ransac(
+    x0: np.ndarray, x1: np.ndarray, threshold: float, prob: float = 0.999
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Essential matrix (3, 3) and inlier mask from normalised matches ``x0 -> x1`` (N, 2) by
+    OpenCV's five-point RANSAC, or None where there is none.
+
+    Why not ``cv2.findEssentialMat`` alone: on degenerate matches (identical points: no motion)
+    OpenCV 5.1 raises in its polynomial solver where 4.x returned no solution; either way it
+    is "no essential matrix" to the caller.
+    """
+    try:
+        e, mask = cv2.findEssentialMat(
+            x0, x1, np.eye(3), method=cv2.RANSAC, prob=prob, threshold=threshold
+        )
+    except cv2.error:
+        return None
+    if e is None or e.shape != (3, 3) or mask is None:
+        return None
+    return e, mask

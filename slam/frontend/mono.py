@@ -38,7 +38,7 @@ from slam.config import FrontendConfig
 from slam.core.calibration import Calibration
 from slam.core.geometry import invert_transform, make_transform, scale_body_pose
 from slam.core.messages import Estimate, Keyframe, StereoFrame, TrackingResult
-from slam.frontend.features import detect_features, track_klt
+from slam.frontend.features import detect_features, essential_ransac, track_klt
 from slam.frontend.tracker import MAX_STORED_KEYFRAME_POSES, FrontEnd
 from slam.imu_buffer import ImuBuffer
 
@@ -304,16 +304,10 @@ class MonoFrontEnd(FrontEnd):
         cfg = self.cfg
         n0, n1 = self._normalised(ref.px0), self._normalised(ref.px)
         f = float(self.cam0.fx)
-        e_mat, mask = cv2.findEssentialMat(
-            n0,
-            n1,
-            np.eye(3),
-            method=cv2.RANSAC,
-            prob=0.999,
-            threshold=cfg.mono_max_reprojection_px / f,
-        )
-        if e_mat is None or e_mat.shape != (3, 3) or mask is None:
+        found = essential_ransac(n0, n1, cfg.mono_max_reprojection_px / f)
+        if found is None:
             return None
+        e_mat, mask = found
         _, rot, t, mask = cv2.recoverPose(e_mat, n0, n1, np.eye(3), mask=mask.copy())
         c1_from_c0 = make_transform(rot, t.ravel())
         inl = np.flatnonzero(mask.ravel() > 0)
