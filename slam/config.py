@@ -127,7 +127,7 @@ class FrontendConfig:
     odometry / loop-closed (mm), old landmarks on revisits, with 2 and 4: V1_01 (OpenVINS
     ground truth) 16.4 / 16.4 / 7.7, 0.22 and 14.5 / 14.4 / 5.9, 0.34; hall 15.6 / 15.5 /
     7.0, 0.51 and 15.4 / 15.4 / 7.1, 0.67; room-figure8 4.2 / 4.2 / 2.6, 0.60 and 4.9 / 4.9 /
-    2.5, 0.64 (the live pose worse)."""
+    2.5, 0.64; aggressive and loop better live, loop's loop-closed 1.7 -> 2.0 (BENCHMARKS.md)."""
     map_max_patch_rms: float = bounded(20.0, gt=0)
     """The affine fit of the birth patch at the match: largest RMS residual, grey levels."""
     map_max_candidates: int = bounded(120, ge=1)
