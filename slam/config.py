@@ -120,6 +120,14 @@ class FrontendConfig:
     it was last seen must fit in it)."""
     map_min_ncc: float = bounded(0.8, gt=0, le=1)
     """Normalised cross-correlation a landmark's warped birth patch needs at its match."""
+    map_unique_exclusion_px: int = bounded(2, ge=1, le=16)
+    """The match must be unique: no NCC value farther than this (pixels, Chebyshev) from its
+    peak within 0.1 of it. Small, a broad peak's own slopes count as rivals (smooth texture
+    seen close: half the matches over map_min_ncc dropped). Sequential ATE se3 live /
+    odometry / loop-closed (mm), old landmarks on revisits, with 2 and 4: V1_01 (OpenVINS
+    ground truth) 16.4 / 16.4 / 7.7, 0.22 and 14.5 / 14.4 / 5.9, 0.34; hall 15.6 / 15.5 /
+    7.0, 0.51 and 15.4 / 15.4 / 7.1, 0.67; room-figure8 4.2 / 4.2 / 2.6, 0.60 and 4.9 / 4.9 /
+    2.5, 0.64; aggressive and loop better live, loop's loop-closed 1.7 -> 2.0 (BENCHMARKS.md)."""
     map_max_patch_rms: float = bounded(20.0, gt=0)
     """The affine fit of the birth patch at the match: largest RMS residual, grey levels."""
     map_max_candidates: int = bounded(120, ge=1)

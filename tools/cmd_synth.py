@@ -32,7 +32,11 @@ profiles (default duration):
   hall        11 x 3 m ellipse in the hall, ~117 m of path (140 s)
   --from-trajectory FILE  any TUM or EuRoC ground-truth trajectory (cubic splines), in a room
                           fitted around it; --imu-csv adds its real EuRoC IMU stream instead
-                          of the simulated one
+                          of the simulated one. The images follow FILE, the IMU the real
+                          motion: FILE's orientation must be accurate (EuRoC's own V1_01
+                          ground truth is not; OpenVINS's recomputed V1_01_easy.txt is). The
+                          gyro is checked against FILE's rotation (a warning above 0.8 deg
+                          per 5 s; see BENCHMARKS.md)
 
 A real camera and a real rig (off by default; --camera realistic switches on a bundle, and
 each option below overrides its part):
@@ -75,7 +79,7 @@ examples:
   slam synth late.mcap --camera realistic --time-offset 15 --calib-rotation-error 0,2,0
   slam synth blur.mcap --exposure 8 --line-delay 30       # blur + rolling shutter only
   slam synth dense.mcap --duration 10 --depth-dir dense_depth --mesh scene.ply
-  slam synth v101.mcap --from-trajectory mav0/state_groundtruth_estimate0/data.csv \\
+  slam synth v101.mcap --from-trajectory groundtruth_openvins/V1_01_easy.txt \\
       --imu-csv mav0/imu0/data.csv
 """
 
@@ -192,6 +196,12 @@ def run(args: argparse.Namespace) -> int:
         f"wrote {result.mcap_path}: {result.num_frames} stereo frames, {result.num_imu} IMU "
         f"samples, {result.duration_s:.1f} s, path {result.path_length_m:.1f} m"
     )
+    agree = result.gyro_agreement
+    if agree is not None:
+        print(
+            f"real IMU against the trajectory: the gyro over {agree.window_s:g} s windows is "
+            f"{agree.median_deg:.2f} deg (median; {agree.max_deg:.2f} max) off its rotation"
+        )
     if result.depth_images:
         print(f"wrote {result.depth_images} depth images (uint16 mm) to {args.depth_dir}")
     if result.mesh_path is not None:

@@ -18,6 +18,7 @@ from tqdm import tqdm
 from datasets.ply import write_ply_mesh
 from datasets.synth.camera_model import CameraEffects
 from datasets.synth.generator import SyntheticSequence
+from datasets.synth.imu_check import GyroAgreement
 from datasets.synth.imu_sim import ImuEffects
 from slam.core.atomic import write_atomic
 from slam.core.errors import InputError
@@ -81,6 +82,7 @@ class SynthResult:
     path_length_m: float
     depth_images: int = 0
     mesh_path: Path | None = None
+    gyro_agreement: GyroAgreement | None = None  # with a real IMU (--imu-csv)
 
 
 def run_synth(
@@ -146,4 +148,5 @@ def run_synth(
         path_length_m=gt.path_length_m(),
         depth_images=n_depth,
         mesh_path=Path(mesh_path) if mesh_path is not None else None,
+        gyro_agreement=seq.gyro_agreement,
     )

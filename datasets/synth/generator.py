@@ -13,6 +13,7 @@ from collections import deque
 from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -44,6 +45,9 @@ from slam.core.errors import InputError
 from slam.core.geometry import rotation_angle_rad
 from slam.core.messages import StereoFrame
 from slam.core.trajectory import Trajectory
+
+if TYPE_CHECKING:
+    from datasets.synth.imu_check import GyroAgreement
 
 PREFETCH_FRAMES = 2  # frames rendered ahead by iter_frames()
 ROLLING_SHUTTER_BAND_ROWS = 16  # rows rendered at one time with a rolling shutter
@@ -112,6 +116,7 @@ class SyntheticSequence(Sequence):
             options.seed,
         )
         self._vignetting: list[np.ndarray] | None = None
+        self.gyro_agreement: GyroAgreement | None = None  # a real IMU against the motion
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
@@ -406,7 +411,7 @@ def make_synthetic_sequence(
         distortion = sim.distortion
     gt_samples = motion.sample((imu_times - t0_ns) * 1e-9)
     ground_truth = Trajectory.from_matrices(imu_times, gt_samples.world_from_body())
-    return SyntheticSequence(
+    seq = SyntheticSequence(
         name=name,
         calibration=given_calib,
         true_calibration=calib,
@@ -421,6 +426,27 @@ def make_synthetic_sequence(
         imu_gyro_bias_rad_s=bg,
         imu_accel_bias_m_s2=ba,
     )
+    if imu_csv is not None:
+        _check_real_imu(seq, motion, imu, t0_ns)
+    return seq
+
+
+def _check_real_imu(seq: SyntheticSequence, motion: Motion, imu: ImuArrays, t0_ns: int) -> None:
+    """Warn when the real IMU's gyro and the trajectory the images follow disagree
+    (:mod:`datasets.synth.imu_check`); the figure is kept in ``seq.gyro_agreement``."""
+    from datasets.synth.imu_check import MAX_MEDIAN_DISAGREEMENT_DEG, gyro_agreement
+
+    agreement = gyro_agreement(motion, imu, t0_ns)
+    seq.gyro_agreement = agreement
+    if agreement is not None and agreement.median_deg > MAX_MEDIAN_DISAGREEMENT_DEG:
+        seq.warn(
+            f"the IMU and the trajectory disagree: the gyro integrated over "
+            f"{agreement.window_s:g} s turns {agreement.median_deg:.2f} deg (median; "
+            f"{agreement.max_deg:.2f} max) away from the trajectory's rotation, above "
+            f"{MAX_MEDIAN_DISAGREEMENT_DEG} deg: the images follow the trajectory, the IMU the "
+            "real motion, and visual-inertial accuracy is bounded by their disagreement (is the "
+            "trajectory's orientation accurate? EuRoC V1_01: use OpenVINS's recomputed ground truth)"
+        )
 
 
 def _rotated_extrinsics(calib: Calibration, rotvec_rad: np.ndarray) -> Calibration:

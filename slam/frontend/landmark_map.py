@@ -104,6 +104,7 @@ class SearchParams:
     max_scale_change: float
     half_window_px: int
     max_rms: float
+    unique_exclusion_px: int = 2  # no rival peak farther than this from the best (Chebyshev)
 
 
 # the per-landmark arrays of a LandmarkMap, one row per landmark
@@ -360,11 +361,13 @@ class LandmarkMap:
             _, best, _, loc = cv2.minMaxLoc(score)
             if best < params.min_ncc:
                 continue
-            # unique: nothing else in the window nearly as good (repeated texture)
+            # unique: nothing else in the window nearly as good (repeated texture); the peak's
+            # own slopes, within unique_exclusion_px of it, are no rival
             x0, y0 = loc
             masked = score.copy()
-            masked[max(y0 - 2, 0) : y0 + 3, max(x0 - 2, 0) : x0 + 3] = -1.0
-            if masked.size > 25 and float(masked.max()) > best - 0.1:
+            e = params.unique_exclusion_px
+            masked[max(y0 - e, 0) : y0 + e + 1, max(x0 - e, 0) : x0 + e + 1] = -1.0
+            if masked.size > (2 * e + 1) ** 2 and float(masked.max()) > best - 0.1:
                 continue
             found_px.append(p + a @ [x0 - r, y0 - r])
             found_rows.append(row)

@@ -646,6 +646,7 @@ class FrontEnd:
         params = SearchParams(
             radius_px=cfg.map_search_radius_px,
             min_ncc=cfg.map_min_ncc,
+            unique_exclusion_px=cfg.map_unique_exclusion_px,
             max_candidates=cfg.map_max_candidates,
             max_view_angle_deg=cfg.map_max_view_angle_deg,
             max_scale_change=cfg.map_max_scale_change,
