@@ -73,6 +73,23 @@ class LoopClosureConfig:
     """Loop edge translation sigma (landmark-to-landmark verification), metres."""
     loop_sigma_rad: float = bounded(0.003, gt=0)
     """Loop edge rotation sigma (landmark-to-landmark verification), radians."""
+    patch_refinement: bool = True
+    """Refine a landmark-verified loop on every landmark of both keyframes that it puts in the
+    other image, each fitted there by its patch (``verify.refine_on_patches``), and weight the
+    edge by the fit's information times ``patch_information_scale`` instead of the loop
+    sigmas. Keeps each keyframe's left image (0.36 MB at 752x480). Measured: BENCHMARKS.md."""
+    patch_information_scale: float = bounded(0.01, gt=0, le=1)
+    """The patch fit's information is multiplied by this: the fit sees the pixels' noise, not
+    the landmarks' depth errors (measured on room-figure8: its chi2 against the truth was ~100x
+    the degrees of freedom)."""
+    patch_max_change_m: float = bounded(0.05, gt=0)
+    """A patch refinement moving the descriptor pose more than this (or
+    ``patch_max_change_deg``) is discarded (the descriptor pose stays)."""
+    patch_max_change_deg: float = bounded(1.0, gt=0, le=180)
+    """See ``patch_max_change_m``."""
+    correct_live_on_old_landmarks: bool = False
+    """Publish frames tracked on old landmarks under the segment's latest loop correction too
+    (otherwise their odometry, which map reuse ties to the old map, is published)."""
     orb_loop_sigma_factor: float = bounded(3.0, gt=0)
     """Loops verified with whole-image ORB keypoints (when landmark to landmark fails) get
     sigmas this many times larger (measured: ~4x the error)."""

@@ -29,12 +29,14 @@ class FrontendStage(Stage):
         threaded: bool,
         queue_size: int,
         map_source: Callable[[], LoopCorrection | None] | None = None,
+        correct_anchored: bool = False,
     ):
         """``map_source``: the latest loop correction (read without waiting), which puts
         every published pose into the loop-corrected map as well."""
         super().__init__("frontend", maxsize=queue_size, threaded=threaded)
         self.frontend = frontend
         self.map_source = map_source
+        self.correct_anchored = correct_anchored
         self._map_generation = 0
         self._correction: LoopCorrection | None = None
         self._applied: tuple[int, np.ndarray] | None = None  # segment, correction last applied
@@ -68,7 +70,9 @@ class FrontendStage(Stage):
         if pose is None:
             return dataclasses.replace(result, map_generation=self._map_generation)
         m = _IDENTITY
-        if self._correction is not None and result.anchor_keyframe_id < 0:
+        if self._correction is not None and (
+            self.correct_anchored or result.anchor_keyframe_id < 0
+        ):
             m = self._correction.map_from_odom.get(result.segment_id, _IDENTITY)
         jump = (0.0, 0.0)
         if self._applied is not None and self._applied[0] == result.segment_id:

@@ -100,7 +100,13 @@ def build(seq: Sequence, cfg: SlamConfig, session: ViewerSession | None) -> Pipe
     )
     map_source = None if loop is None else loop.latest.get
     p = Pipeline(
-        FrontendStage(frontend, threaded, cfg.player.frame_queue_size, map_source),
+        FrontendStage(
+            frontend,
+            threaded,
+            cfg.player.frame_queue_size,
+            map_source,
+            correct_anchored=cfg.loop.correct_live_on_old_landmarks,
+        ),
         recorder,
         imu_buffer,
     )
