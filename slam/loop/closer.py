@@ -103,9 +103,9 @@ def loop_information(
     method: str, cfg: LoopClosureConfig, fitted: np.ndarray | None = None
 ) -> np.ndarray:
     """Information (6x6, g2o order) of a loop edge verified by ``method``; ``fitted``: the
-    patch refinement's (body frame), used scaled by ``patch_information_scale``."""
+    patch refinement's (body frame, see ``LoopCloser._refine_on_patches``), used as it is."""
     if fitted is not None:
-        return fitted * cfg.patch_information_scale
+        return fitted
     scale = 1.0 if method == "landmarks" else cfg.orb_loop_sigma_factor
     return information_from_sigmas(cfg.loop_sigma_m * scale, cfg.loop_sigma_rad * scale)
 
@@ -467,8 +467,8 @@ class LoopCloser:
         self, kf: Keyframe, desc: KeyframeDescription, match: int, ver: LoopVerification
     ) -> tuple[np.ndarray, np.ndarray | None]:
         """The landmark-verified pose refined on patches (``verify.refine_on_patches``) and its
-        information in the body frame (g2o order); the verified pose and None when the
-        refinement fails or moves it implausibly far."""
+        information in the body frame (g2o order, times ``patch_information_scale``); the
+        verified pose and None when the refinement fails or moves it implausibly far."""
         image = self.images.get(match)
         if image is None:
             return ver.candidate_cam_from_query_cam, None
@@ -499,8 +499,8 @@ class LoopCloser:
         skew = np.array([[0, -pos[2], pos[1]], [pos[2], 0, -pos[0]], [-pos[1], pos[0], 0]])
         adj = np.block([[rot, skew @ rot], [np.zeros((3, 3)), rot]])
         adj_inv = np.linalg.inv(adj)
-        info_body = adj_inv.T @ ref.information @ adj_inv
-        return ref.candidate_cam_from_query_cam, 0.5 * (info_body + info_body.T)
+        info = adj_inv.T @ ref.information @ adj_inv * self.cfg.patch_information_scale
+        return ref.candidate_cam_from_query_cam, 0.5 * (info + info.T)
 
     def _verify_and_gate(
         self, kf: Keyframe, desc: KeyframeDescription, candidates: list[int]
@@ -883,7 +883,14 @@ class LoopCloser:
             if not ok and by_id[lid].active:
                 by_id[lid].active = False
                 self.stats.rejected_by_pgo += 1
-        self._set_optimised(outcome.world_from_node)
+        poses = outcome.world_from_node
+        if self.cfg.pgo_align_to_odometry and len(poses) >= 3:
+            gauge = _rigid_fit(
+                np.array([p[:3, 3] for p in poses.values()]),
+                np.array([self.odom[k][:3, 3] for k in poses]),
+            )
+            poses = {k: gauge @ p for k, p in poses.items()}
+        self._set_optimised(poses)
         last = max((r for r in self.loops if r.active), key=lambda r: r.loop_id, default=None)
         correction = LoopCorrection(
             t_ns=self.t_ns_of[self.kf_ids[-1]],
@@ -894,6 +901,7 @@ class LoopCloser:
             map_generation=self.map_generation,
             map_from_odom={s: m.copy() for s, m in self.map_from_odom.items()},
             corrected_keyframe_poses=self.corrected_poses(),
+            keyframe_map_from_odom=self.keyframe_map_from_odom(),
         )
         self._last_correction = correction
         return correction
@@ -931,6 +939,20 @@ class LoopCloser:
                 for r in self.loops
             ],
         }
+
+
+def _rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """The rigid transform (4x4) taking points ``src`` (N, 3) closest to ``dst`` (Umeyama,
+    no scale)."""
+    ms, md = src.mean(axis=0), dst.mean(axis=0)
+    u, _, vt = np.linalg.svd((dst - md).T @ (src - ms))
+    fix = np.eye(3)
+    fix[2, 2] = np.sign(np.linalg.det(u @ vt))
+    rot = u @ fix @ vt
+    out = np.eye(4)
+    out[:3, :3] = rot
+    out[:3, 3] = md - rot @ ms
+    return out
 
 
 def loop_closed_poses(

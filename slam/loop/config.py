@@ -87,9 +87,22 @@ class LoopClosureConfig:
     ``patch_max_change_deg``) is discarded (the descriptor pose stays)."""
     patch_max_change_deg: float = bounded(1.0, gt=0, le=180)
     """See ``patch_max_change_m``."""
-    correct_live_on_old_landmarks: bool = False
-    """Publish frames tracked on old landmarks under the segment's latest loop correction too
-    (otherwise their odometry, which map reuse ties to the old map, is published)."""
+    live_correction: str = "unanchored"
+    """The loop correction the live pose (``trajectory.tum``) is published under: its
+    segment's latest (``map_from_odom``) for every frame (``latest``), for frames not tracked
+    on old landmarks only (``unanchored``: those get their odometry, which map reuse ties to
+    the old map), or for those the correction of the keyframe their old landmarks were born
+    at (``anchor``). Measured with patch-refined edges and ``pgo_align_to_odometry``
+    (BENCHMARKS.md, "Precise loop edges"): ``latest`` took the live ATE of room-figure8 from
+    4.25 to 3.40 mm and the hall's from 15.6 to 14.9, but room-aggressive's from 3.75 to 4.23:
+    not the default yet."""
+    pgo_align_to_odometry: bool = False
+    """Move each pose-graph result rigidly onto the odometry poses of its keyframes (least
+    squares on positions) instead of leaving it where its fixed oldest keyframe holds it: the
+    map frame then stays that of the odometry the live pose was published in before (with
+    ``live_correction: latest``, room-figure8's live ATE 3.69 -> 3.40 mm, the hall's 16.8 ->
+    14.9). Every keyframe moves a little at each correction (the mapper re-integrates those
+    past its threshold)."""
     orb_loop_sigma_factor: float = bounded(3.0, gt=0)
     """Loops verified with whole-image ORB keypoints (when landmark to landmark fails) get
     sigmas this many times larger (measured: ~4x the error)."""

@@ -105,7 +105,7 @@ def build(seq: Sequence, cfg: SlamConfig, session: ViewerSession | None) -> Pipe
             threaded,
             cfg.player.frame_queue_size,
             map_source,
-            correct_anchored=cfg.loop.correct_live_on_old_landmarks,
+            live_correction=cfg.loop.live_correction,
         ),
         recorder,
         imu_buffer,
