@@ -250,8 +250,6 @@ class LoopCorrection:
     map_generation: int  # increments with every correction
     map_from_odom: dict[int, np.ndarray]
     corrected_keyframe_poses: dict[int, np.ndarray]
-    # keyframe id -> its corrected pose @ inverse(its odometry pose)
-    keyframe_map_from_odom: dict[int, np.ndarray] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, eq=False)

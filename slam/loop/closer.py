@@ -901,7 +901,6 @@ class LoopCloser:
             map_generation=self.map_generation,
             map_from_odom={s: m.copy() for s, m in self.map_from_odom.items()},
             corrected_keyframe_poses=self.corrected_poses(),
-            keyframe_map_from_odom=self.keyframe_map_from_odom(),
         )
         self._last_correction = correction
         return correction

@@ -89,10 +89,9 @@ class LoopClosureConfig:
     """See ``patch_max_change_m``."""
     live_correction: str = "unanchored"
     """The loop correction the live pose (``trajectory.tum``) is published under: its
-    segment's latest (``map_from_odom``) for every frame (``latest``), for frames not tracked
-    on old landmarks only (``unanchored``: those get their odometry, which map reuse ties to
-    the old map), or for those the correction of the keyframe their old landmarks were born
-    at (``anchor``). Measured with patch-refined edges and ``pgo_align_to_odometry``
+    segment's latest (``map_from_odom``) for every frame (``latest``), or for frames not
+    tracked on old landmarks only (``unanchored``: those get their odometry, which map reuse
+    ties to the old map). Measured with patch-refined edges and ``pgo_align_to_odometry``
     (BENCHMARKS.md, "Precise loop edges"): ``latest`` took the live ATE of room-figure8 from
     4.25 to 3.40 mm and the hall's from 15.6 to 14.9, but room-aggressive's from 3.75 to 4.23:
     not the default yet."""

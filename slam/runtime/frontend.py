@@ -17,7 +17,7 @@ from slam.frontend.tracker import FrontEnd
 from slam.runtime.stage import Stage
 
 _IDENTITY = np.eye(4)
-LIVE_CORRECTIONS = ("unanchored", "latest", "anchor")  # loop.live_correction
+LIVE_CORRECTIONS = ("unanchored", "latest")  # loop.live_correction
 
 
 class FrontendStage(Stage):
@@ -65,8 +65,8 @@ class FrontendStage(Stage):
         loop closure never moves the odometry itself). A frame tracked on old landmarks found
         again in the map (``anchor_keyframe_id``) is already tied to the map: by default
         (``loop.live_correction: unanchored``) its odometry is published as it is; ``latest``
-        corrects it too, ``anchor`` by the correction of the keyframe its old landmarks were
-        born at (measured: BENCHMARKS.md, "Precise loop edges"). A change of the correction
+        corrects it too (measured: BENCHMARKS.md, "Precise loop edges"; the correction of the
+        keyframe its old landmarks were born at was worse). A change of the correction
         applied is a jump, measured on this frame."""
         corr = None if self.map_source is None else self.map_source()
         if corr is not None and corr.map_generation != self._map_generation:
@@ -76,12 +76,9 @@ class FrontendStage(Stage):
         if pose is None:
             return dataclasses.replace(result, map_generation=self._map_generation)
         m = _IDENTITY
-        corr, anchor = self._correction, result.anchor_keyframe_id
-        if corr is not None:
-            if anchor < 0 or self.live_correction == "latest":
-                m = corr.map_from_odom.get(result.segment_id, _IDENTITY)
-            elif self.live_correction == "anchor":
-                m = corr.keyframe_map_from_odom.get(anchor, _IDENTITY)
+        corr = self._correction
+        if corr is not None and (result.anchor_keyframe_id < 0 or self.live_correction == "latest"):
+            m = corr.map_from_odom.get(result.segment_id, _IDENTITY)
         jump = (0.0, 0.0)
         if self._applied is not None and self._applied[0] == result.segment_id:
             if m is not self._applied[1]:
