@@ -70,6 +70,29 @@ def test_published_pose_is_odometry_under_the_latest_correction() -> None:
     assert lost.map_from_body is None and lost.map_generation == 1
 
 
+def test_latest_correction_also_moves_frames_on_old_landmarks() -> None:
+    """``loop.live_correction: latest``: a frame tracked on old landmarks is published under
+    the correction too; an unknown policy is refused."""
+    import pytest
+
+    from slam.core.errors import SlamError
+
+    fix = make_transform(so3_exp(np.array([0.0, 0.0, np.radians(1.0)])), np.array([0, 0.05, 0]))
+    fe = FrontEnd(euroc_like_calibration(), FrontendConfig())
+    stage = FrontendStage(
+        fe,
+        threaded=False,
+        queue_size=2,
+        map_source=lambda: _correction(1, {0: fix}),
+        live_correction="latest",
+    )
+    odo = make_transform(so3_exp(np.array([0.1, 0.0, 0.3])), np.array([2.0, 1.0, 0.5]))
+    anchored = stage._in_map(_result(1, odo, anchor=3))
+    np.testing.assert_allclose(anchored.map_from_body, fix @ odo)
+    with pytest.raises(SlamError, match="live_correction"):
+        FrontendStage(fe, threaded=False, queue_size=2, live_correction="anchor")
+
+
 def test_run_writes_live_and_odometry_trajectories(tmp_path) -> None:
     """A stereo-inertial run with loop closure: trajectory.tum is the odometry until the
     first correction and the corrected pose from then on; the first jump recorded in

@@ -311,3 +311,16 @@ def test_backlog_that_used_the_budget_skips_the_adjustment() -> None:
     assert final.stats["global_ba"] is None
     core.end_began_s = time.perf_counter()
     assert core.finish(interrupted=False).stats["global_ba_skipped"] is None
+
+
+def test_rigid_fit_recovers_a_gauge_change() -> None:
+    """``pgo_align_to_odometry``: a pose-graph result moved rigidly away from the odometry is
+    moved back exactly."""
+    from slam.loop.closer import _rigid_fit
+
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-3, 3, (40, 3))
+    gauge = make_transform(so3_exp(np.array([0.01, -0.02, 0.3])), [0.1, -0.2, 0.05])
+    moved = pts @ gauge[:3, :3].T + gauge[:3, 3]
+    back = _rigid_fit(moved, pts)
+    assert np.allclose(back @ gauge, np.eye(4), atol=1e-9)

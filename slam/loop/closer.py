@@ -45,7 +45,13 @@ from slam.loop.global_ba import (
     global_bundle_adjustment,
 )
 from slam.loop.store import KeyframeDescription, KeyframeStore, describe_keyframe
-from slam.loop.verify import LoopVerification, VerifyParams, verify_loop, verify_loop_landmarks
+from slam.loop.verify import (
+    LoopVerification,
+    VerifyParams,
+    refine_on_patches,
+    verify_loop,
+    verify_loop_landmarks,
+)
 from slam.loop.vocabulary import Vocabulary, load_default_vocabulary
 from slam.posegraph import (
     DEFAULT_KERNEL_WIDTH,
@@ -93,8 +99,13 @@ def robust_threshold(cfg: LoopClosureConfig) -> float:
     return DEFAULT_KERNEL_WIDTH.get(cfg.robust, 0.0) * scale
 
 
-def loop_information(method: str, cfg: LoopClosureConfig) -> np.ndarray:
-    """Information (6x6, g2o order) of a loop edge verified by ``method``."""
+def loop_information(
+    method: str, cfg: LoopClosureConfig, fitted: np.ndarray | None = None
+) -> np.ndarray:
+    """Information (6x6, g2o order) of a loop edge verified by ``method``; ``fitted``: the
+    patch refinement's (body frame, see ``LoopCloser._refine_on_patches``), used as it is."""
+    if fitted is not None:
+        return fitted
     scale = 1.0 if method == "landmarks" else cfg.orb_loop_sigma_factor
     return information_from_sigmas(cfg.loop_sigma_m * scale, cfg.loop_sigma_rad * scale)
 
@@ -164,6 +175,7 @@ class LoopRecord:
     active: bool = True  # False once PGO's robust kernel rejected it
     method: str = "landmarks"  # how it was verified: "landmarks" or "orb" (see _verify)
     landmark_pairs: np.ndarray | None = None  # (M, 2) query / match landmark ids it matched
+    information: np.ndarray | None = None  # 6x6 g2o order, body frame: the patch fit's
 
 
 @dataclass(frozen=True, eq=False)
@@ -194,6 +206,7 @@ class LoopStats:
     rejected_gate: int = 0
     rejected_unconfirmed: int = 0
     rejected_by_pgo: int = 0
+    patch_refined: int = 0
     pgo_runs: int = 0
     pgo_ms: list[float] = field(default_factory=list)
     describe_ms: list[float] = field(default_factory=list)
@@ -212,6 +225,7 @@ class LoopStats:
             "rejected_gate": self.rejected_gate,
             "rejected_unconfirmed": self.rejected_unconfirmed,
             "rejected_by_pgo": self.rejected_by_pgo,
+            "patch_refined": self.patch_refined,
             "pgo_runs": self.pgo_runs,
             "pgo": pct(self.pgo_ms),
             "describe": pct(self.describe_ms),
@@ -291,6 +305,7 @@ class LoopCloser:
         self._last_correction: LoopCorrection | None = None
         self.observations: dict[int, KeyframeObservations] = {}  # for the global adjustment
         self.global_ba: GlobalBaResult | None = None
+        self.images: dict[int, np.ndarray] = {}  # left image per keyframe (patch refinement)
         self.exclude_from_adjustment: set[int] = set()
         """Keyframes left out of the global adjustment (set by the stage at the end: those the
         back end never smoothed, i.e. from before its initialisation)."""
@@ -340,6 +355,8 @@ class LoopCloser:
         self.stats.describe_ms.append((time.perf_counter() - t0) * 1e3)
         self._add_node(kf, world_from_body_odom)
         self.store.add_description(desc, world_from_body_odom)
+        if self.cfg.patch_refinement:
+            self.images[kf.keyframe_id] = kf.image_left
         if self.cfg.global_ba:
             self.observations[kf.keyframe_id] = self._observations(kf)
         # covisible: the keyframes since the oldest start of the landmark tracks that go on
@@ -446,6 +463,45 @@ class LoopCloser:
             self.verify_params,
         )
 
+    def _refine_on_patches(
+        self, kf: Keyframe, desc: KeyframeDescription, match: int, ver: LoopVerification
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """The landmark-verified pose refined on patches (``verify.refine_on_patches``) and its
+        information in the body frame (g2o order, times ``patch_information_scale``); the
+        verified pose and None when the refinement fails or moves it implausibly far."""
+        image = self.images.get(match)
+        if image is None:
+            return ver.candidate_cam_from_query_cam, None
+        cand = self.store.description(match)
+        ref = refine_on_patches(
+            ver.candidate_cam_from_query_cam,
+            self.intr,
+            image,
+            cand.landmark_xy_undist,
+            cand.landmark_points_cam,
+            kf.image_left,
+            desc.landmark_xy_undist,
+            desc.landmark_points_cam,
+        )
+        if ref is None:
+            return ver.candidate_cam_from_query_cam, None
+        change = (
+            invert_transform(ver.candidate_cam_from_query_cam) @ ref.candidate_cam_from_query_cam
+        )
+        if (
+            np.linalg.norm(change[:3, 3]) > self.cfg.patch_max_change_m
+            or np.degrees(rotation_angle_rad(change[:3, :3])) > self.cfg.patch_max_change_deg
+        ):
+            return ver.candidate_cam_from_query_cam, None
+        self.stats.patch_refined += 1
+        # delta_body = Ad(body_from_cam0) delta_cam (right perturbations, translation first)
+        rot, pos = self.body_from_cam0[:3, :3], self.body_from_cam0[:3, 3]
+        skew = np.array([[0, -pos[2], pos[1]], [pos[2], 0, -pos[0]], [-pos[1], pos[0], 0]])
+        adj = np.block([[rot, skew @ rot], [np.zeros((3, 3)), rot]])
+        adj_inv = np.linalg.inv(adj)
+        info = adj_inv.T @ ref.information @ adj_inv * self.cfg.patch_information_scale
+        return ref.candidate_cam_from_query_cam, 0.5 * (info + info.T)
+
     def _verify_and_gate(
         self, kf: Keyframe, desc: KeyframeDescription, candidates: list[int]
     ) -> LoopEvent:
@@ -457,7 +513,10 @@ class LoopCloser:
             self.stats.rejected_verification += 1
             return LoopEvent(kf.t_ns, q, candidates[0], "rejected", "verification failed", 0)
         self.stats.verified += 1
-        measured = self.body_from_cam0 @ ver.candidate_cam_from_query_cam @ self.cam0_from_body
+        cand_from_query, information = ver.candidate_cam_from_query_cam, None
+        if method == "landmarks" and self.cfg.patch_refinement:
+            cand_from_query, information = self._refine_on_patches(kf, desc, match, ver)
+        measured = self.body_from_cam0 @ cand_from_query @ self.cam0_from_body
         pairs = None
         if method == "landmarks":
             pairs = np.stack(
@@ -476,6 +535,7 @@ class LoopCloser:
             t_ns=kf.t_ns,
             method=method,
             landmark_pairs=pairs,
+            information=information,
         )
         implied_query = self.corrected_pose(match) @ measured
         current_query = self.corrected_pose(q)
@@ -620,7 +680,7 @@ class LoopCloser:
                     r.match_kf_id,
                     r.query_kf_id,
                     r.match_body_from_query_body,
-                    loop_information(r.method, c),
+                    loop_information(r.method, c, r.information),
                 )
                 for r in loops
             ),
@@ -823,7 +883,14 @@ class LoopCloser:
             if not ok and by_id[lid].active:
                 by_id[lid].active = False
                 self.stats.rejected_by_pgo += 1
-        self._set_optimised(outcome.world_from_node)
+        poses = outcome.world_from_node
+        if self.cfg.pgo_align_to_odometry and len(poses) >= 3:
+            gauge = _rigid_fit(
+                np.array([p[:3, 3] for p in poses.values()]),
+                np.array([self.odom[k][:3, 3] for k in poses]),
+            )
+            poses = {k: gauge @ p for k, p in poses.items()}
+        self._set_optimised(poses)
         last = max((r for r in self.loops if r.active), key=lambda r: r.loop_id, default=None)
         correction = LoopCorrection(
             t_ns=self.t_ns_of[self.kf_ids[-1]],
@@ -871,6 +938,20 @@ class LoopCloser:
                 for r in self.loops
             ],
         }
+
+
+def _rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """The rigid transform (4x4) taking points ``src`` (N, 3) closest to ``dst`` (Umeyama,
+    no scale)."""
+    ms, md = src.mean(axis=0), dst.mean(axis=0)
+    u, _, vt = np.linalg.svd((dst - md).T @ (src - ms))
+    fix = np.eye(3)
+    fix[2, 2] = np.sign(np.linalg.det(u @ vt))
+    rot = u @ fix @ vt
+    out = np.eye(4)
+    out[:3, :3] = rot
+    out[:3, 3] = md - rot @ ms
+    return out
 
 
 def loop_closed_poses(

@@ -73,6 +73,35 @@ class LoopClosureConfig:
     """Loop edge translation sigma (landmark-to-landmark verification), metres."""
     loop_sigma_rad: float = bounded(0.003, gt=0)
     """Loop edge rotation sigma (landmark-to-landmark verification), radians."""
+    patch_refinement: bool = True
+    """Refine a landmark-verified loop on every landmark of both keyframes that it puts in the
+    other image, each fitted there by its patch (``verify.refine_on_patches``), and weight the
+    edge by the fit's information times ``patch_information_scale`` instead of the loop
+    sigmas. Keeps each keyframe's left image (0.36 MB at 752x480). Measured: BENCHMARKS.md."""
+    patch_information_scale: float = bounded(0.01, gt=0, le=1)
+    """The patch fit's information is multiplied by this: the fit sees the pixels' noise, not
+    the landmarks' depth errors (measured on room-figure8: its chi2 against the truth was ~100x
+    the degrees of freedom)."""
+    patch_max_change_m: float = bounded(0.05, gt=0)
+    """A patch refinement moving the descriptor pose more than this (or
+    ``patch_max_change_deg``) is discarded (the descriptor pose stays)."""
+    patch_max_change_deg: float = bounded(1.0, gt=0, le=180)
+    """See ``patch_max_change_m``."""
+    live_correction: str = "unanchored"
+    """The loop correction the live pose (``trajectory.tum``) is published under: its
+    segment's latest (``map_from_odom``) for every frame (``latest``), or for frames not
+    tracked on old landmarks only (``unanchored``: those get their odometry, which map reuse
+    ties to the old map). Measured with patch-refined edges and ``pgo_align_to_odometry``
+    (BENCHMARKS.md, "Precise loop edges"): ``latest`` took the live ATE of room-figure8 from
+    4.25 to 3.40 mm and the hall's from 15.6 to 14.9, but room-aggressive's from 3.75 to 4.23:
+    not the default yet."""
+    pgo_align_to_odometry: bool = False
+    """Move each pose-graph result rigidly onto the odometry poses of its keyframes (least
+    squares on positions) instead of leaving it where its fixed oldest keyframe holds it: the
+    map frame then stays that of the odometry the live pose was published in before (with
+    ``live_correction: latest``, room-figure8's live ATE 3.69 -> 3.40 mm, the hall's 16.8 ->
+    14.9). Every keyframe moves a little at each correction (the mapper re-integrates those
+    past its threshold)."""
     orb_loop_sigma_factor: float = bounded(3.0, gt=0)
     """Loops verified with whole-image ORB keypoints (when landmark to landmark fails) get
     sigmas this many times larger (measured: ~4x the error)."""

@@ -10,12 +10,14 @@ from typing import Any
 import cv2
 import numpy as np
 
+from slam.core.errors import SlamError
 from slam.core.geometry import rotation_angle_rad
 from slam.core.messages import LoopCorrection, StereoFrame, TrackingResult
 from slam.frontend.tracker import FrontEnd
 from slam.runtime.stage import Stage
 
 _IDENTITY = np.eye(4)
+LIVE_CORRECTIONS = ("unanchored", "latest")  # loop.live_correction
 
 
 class FrontendStage(Stage):
@@ -29,12 +31,18 @@ class FrontendStage(Stage):
         threaded: bool,
         queue_size: int,
         map_source: Callable[[], LoopCorrection | None] | None = None,
+        live_correction: str = "unanchored",
     ):
         """``map_source``: the latest loop correction (read without waiting), which puts
         every published pose into the loop-corrected map as well."""
         super().__init__("frontend", maxsize=queue_size, threaded=threaded)
         self.frontend = frontend
         self.map_source = map_source
+        if live_correction not in LIVE_CORRECTIONS:
+            raise SlamError(
+                f"loop.live_correction must be one of {LIVE_CORRECTIONS}, got {live_correction!r}"
+            )
+        self.live_correction = live_correction
         self._map_generation = 0
         self._correction: LoopCorrection | None = None
         self._applied: tuple[int, np.ndarray] | None = None  # segment, correction last applied
@@ -55,11 +63,11 @@ class FrontendStage(Stage):
         """The result with its pose in the loop-corrected map as known now: the odometry
         composed with the latest correction of its segment (VINS-Fusion publishes the same;
         loop closure never moves the odometry itself). A frame tracked on old landmarks found
-        again in the map (``anchor_keyframe_id``) is already tied to the map: its odometry is
-        published as it is. Measured with ``--sequential`` on the suite, applying the
-        correction of the keyframe those landmarks were born at made that pose worse
-        (room-aggressive 3.45 -> 4.99 mm, hall 18.3 -> 25.2 mm ATE). A change of the
-        correction applied is a jump, measured on this frame."""
+        again in the map (``anchor_keyframe_id``) is already tied to the map: by default
+        (``loop.live_correction: unanchored``) its odometry is published as it is; ``latest``
+        corrects it too (measured: BENCHMARKS.md, "Precise loop edges"; the correction of the
+        keyframe its old landmarks were born at was worse). A change of the correction
+        applied is a jump, measured on this frame."""
         corr = None if self.map_source is None else self.map_source()
         if corr is not None and corr.map_generation != self._map_generation:
             self._correction = corr
@@ -68,8 +76,9 @@ class FrontendStage(Stage):
         if pose is None:
             return dataclasses.replace(result, map_generation=self._map_generation)
         m = _IDENTITY
-        if self._correction is not None and result.anchor_keyframe_id < 0:
-            m = self._correction.map_from_odom.get(result.segment_id, _IDENTITY)
+        corr = self._correction
+        if corr is not None and (result.anchor_keyframe_id < 0 or self.live_correction == "latest"):
+            m = corr.map_from_odom.get(result.segment_id, _IDENTITY)
         jump = (0.0, 0.0)
         if self._applied is not None and self._applied[0] == result.segment_id:
             if m is not self._applied[1]:

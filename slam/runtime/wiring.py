@@ -100,7 +100,13 @@ def build(seq: Sequence, cfg: SlamConfig, session: ViewerSession | None) -> Pipe
     )
     map_source = None if loop is None else loop.latest.get
     p = Pipeline(
-        FrontendStage(frontend, threaded, cfg.player.frame_queue_size, map_source),
+        FrontendStage(
+            frontend,
+            threaded,
+            cfg.player.frame_queue_size,
+            map_source,
+            live_correction=cfg.loop.live_correction,
+        ),
         recorder,
         imu_buffer,
     )
