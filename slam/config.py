@@ -87,6 +87,11 @@ class FrontendConfig:
     mismatch breaks."""
     klt_pyramid_levels: int = bounded(3, ge=0)
     """KLT pyramid levels above the base image."""
+    klt_predicted_levels: int = bounded(3, ge=0, le_field="klt_pyramid_levels")
+    """KLT pyramid levels above the base image for a landmark's track started at its
+    projection from the predicted pose (``FrontEnd._track_points``); the tracks lost so are
+    tracked again over ``klt_pyramid_levels``. Equal to ``klt_pyramid_levels``: every track
+    over the full pyramid from the gyro-rotated pixel, as before."""
     klt_fb_max_error_px: float = bounded(0.7, gt=0)
     """Forward-backward check: max distance between a point and its back-tracked position."""
     klt_backward_levels: int = bounded(1, ge=0)
