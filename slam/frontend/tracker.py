@@ -66,7 +66,7 @@ class FrontendStats:
     """Tracks started at their landmark's projection from the predicted pose
     (``klt_predicted_levels``)..."""
     klt_retracked: int = 0
-    """...and those lost so, tracked again over the full pyramid."""
+    """Tracks lost from a bad prediction, tracked again over the full pyramid."""
     track_refits: int = 0
     """Affine re-fits of tracks to their birth patch attempted (``affine_klt``)..."""
     track_refits_kept: int = 0
@@ -521,11 +521,12 @@ class FrontEnd:
 
         A landmark's track starts at the landmark's projection from the predicted pose
         (``world_from_body_guess``: IMU dead reckoning from the back end's estimate, else
-        constant velocity with the gyro's rotation), within ~3 px of where KLT ends at p99 on
-        room-aggressive where the gyro-rotated pixel alone (``gyro_guess``) is ~19 px off. So
-        ``klt_predicted_levels`` pyramid levels do instead of ``klt_pyramid_levels``. Tracks
-        without a landmark, and landmark tracks lost that way (a bad prediction), are tracked
-        from the gyro guess over the full pyramid, as before.
+        constant velocity with the gyro's rotation), the others at the gyro-rotated pixel
+        (``gyro_guess``), all on ``klt_predicted_levels`` pyramid levels instead of
+        ``klt_pyramid_levels``: with the back end's estimate the projection is within a few
+        pixels of where KLT ends. When more than ``klt_predicted_max_lost`` of the landmark
+        tracks are lost so (a bad prediction: constant velocity through a sharp turn), the
+        lost tracks are tracked again from the gyro guess over the full pyramid.
         """
         cfg = self.cfg
         n = len(self.px)
@@ -533,32 +534,25 @@ class FrontEnd:
         if levels >= cfg.klt_pyramid_levels or n == 0:
             return track_klt(pyr_from, pyr_to, self.px, cfg, guess_to=gyro_guess)
         rows = np.array([i in self.landmarks for i in self.ids.tolist()], dtype=bool)
-        predicted = np.full((n, 2), np.nan, np.float32)
+        start = (self.px if gyro_guess is None else gyro_guess).astype(np.float32)
+        predicted = np.zeros(n, bool)
         if rows.any():
             cam_from_world = self.cam0_from_body @ invert_transform(world_from_body_guess)
             pts = np.array([self.landmarks[i] for i in self.ids[rows].tolist()])
             pts_cam = transform_points(cam_from_world, pts)
             front = pts_cam[:, 2] > 0.1
             idx = np.flatnonzero(rows)[front]
-            predicted[idx] = self.cam0.project(pts_cam[front])
-        h, w = pyr_to.shape[:2]
-        first = (
-            np.isfinite(predicted).all(axis=1)
-            & (predicted[:, 0] >= 0)
-            & (predicted[:, 1] >= 0)
-            & (predicted[:, 0] <= w - 1)
-            & (predicted[:, 1] <= h - 1)
-        )
-        px = np.zeros((n, 2), np.float32)
-        ok = np.zeros(n, bool)
-        if first.any():
-            px[first], ok[first] = track_klt(
-                pyr_from, pyr_to, self.px[first], cfg, guess_to=predicted[first], levels=levels
-            )
-        again = ~ok
-        self.stats.klt_predicted += int(first.sum())
-        self.stats.klt_retracked += int((first & again).sum())
-        if again.any():
+            proj = self.cam0.project(pts_cam[front])
+            h, w = pyr_to.shape[:2]
+            inside = (proj >= 0).all(axis=1) & (proj[:, 0] <= w - 1) & (proj[:, 1] <= h - 1)
+            start[idx[inside]] = proj[inside]
+            predicted[idx[inside]] = True
+        px, ok = track_klt(pyr_from, pyr_to, self.px, cfg, guess_to=start, levels=levels)
+        lost = predicted & ~ok
+        self.stats.klt_predicted += int(predicted.sum())
+        if lost.sum() > cfg.klt_predicted_max_lost * max(int(predicted.sum()), 1):
+            again = ~ok
+            self.stats.klt_retracked += int(again.sum())
             px[again], ok[again] = track_klt(
                 pyr_from,
                 pyr_to,
