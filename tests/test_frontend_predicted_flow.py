@@ -103,3 +103,19 @@ def test_reduced_images_give_the_same_ratio_and_are_made_once() -> None:
     cache.get(c)
     cache.get(np.zeros_like(a))
     assert cache.get(b) is not None and len(cache._items) == 3
+
+
+def test_bench_ground_truth_prior_has_the_pose_and_velocity_of_the_truth() -> None:
+    from slam.core.trajectory import Trajectory
+    from tools.bench_frontend import _truth_estimate
+
+    t_ns = np.arange(0, 2_000_000_000, 5_000_000, dtype=np.int64)
+    velocity = np.array([0.5, -0.2, 0.1])
+    poses = np.repeat(np.eye(4)[None], len(t_ns), axis=0)
+    poses[:, :3, 3] = t_ns[:, None] * 1e-9 * velocity
+    poses[:, :3, :3] = so3_exp(np.array([0.0, 0.0, 0.3]))
+    truth = Trajectory.from_matrices(t_ns, poses)
+    est = _truth_estimate(truth, truth.matrices(), 1_000_000_000, 7)
+    assert est.initialized and est.keyframe_id == 7 and est.t_ns == 1_000_000_000
+    np.testing.assert_allclose(est.world_from_body, poses[200], atol=1e-12)
+    np.testing.assert_allclose(est.velocity_world_m_s, velocity, atol=1e-9)
