@@ -85,13 +85,43 @@ def build_pyramid(image: np.ndarray, cfg: FrontendConfig) -> np.ndarray:
     return image
 
 
+def reduced_image(image: np.ndarray) -> np.ndarray:
+    """``image`` reduced 8x by area averaging, float32 (:func:`brightness_ratio`'s local means)."""
+    h, w = image.shape[:2]
+    small = cv2.resize(image, (max(w // 8, 1), max(h // 8, 1)), interpolation=cv2.INTER_AREA)
+    return small.astype(np.float32)
+
+
+class ReducedImages:
+    """The :func:`reduced_image` of the last few images asked for, by identity: a frame's
+    image is compared with the previous frame's, then with its stereo partner at a keyframe,
+    then with the next frame's; each is reduced once instead of at every comparison."""
+
+    def __init__(self, size: int = 3) -> None:
+        self.size = size
+        self._items: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def get(self, image: np.ndarray) -> np.ndarray:
+        for img, small in self._items:
+            if img is image:
+                return small
+        small = reduced_image(image)
+        self._items = [*self._items[-(self.size - 1) :], (image, small)] if self.size > 1 else []
+        return small
+
+
 def brightness_ratio(
-    image_from: np.ndarray, image_to: np.ndarray, px_from: np.ndarray, px_to: np.ndarray
+    image_from: np.ndarray,
+    image_to: np.ndarray,
+    px_from: np.ndarray,
+    px_to: np.ndarray,
+    reduced: ReducedImages | None = None,
 ) -> float:
     """How much brighter ``image_to`` is than ``image_from`` around corresponding points
     ``px_from`` / ``px_to`` (N, 2): the median ratio of their local mean intensities (1 with
     fewer than 8 points). The means are taken on 8x-reduced images (a 0.1 ms box filter), so
-    a few pixels of error in ``px_to`` (a predicted position) do not matter.
+    a few pixels of error in ``px_to`` (a predicted position) do not matter. ``reduced``: a
+    cache of those reduced images.
 
     Why: pyramidal KLT assumes constant brightness. An auto-exposure gain step (3 dB) between
     two frames moved its tracks by 0.5 px (median) and lost 16 % of them on a textured image;
@@ -102,12 +132,11 @@ def brightness_ratio(
         return 1.0
     means = []
     for image, px in ((image_from, px_from[:n]), (image_to, px_to[:n])):
-        h, w = image.shape[:2]
-        small = cv2.resize(image, (max(w // 8, 1), max(h // 8, 1)), interpolation=cv2.INTER_AREA)
+        small = reduced_image(image) if reduced is None else reduced.get(image)
         xy = np.asarray(px, np.float32) / 8.0 - 0.5
         means.append(
             cv2.remap(
-                small.astype(np.float32),
+                small,
                 np.ascontiguousarray(xy[:, 0:1]),
                 np.ascontiguousarray(xy[:, 1:2]),
                 interpolation=cv2.INTER_LINEAR,

@@ -344,47 +344,56 @@ class LandmarkMap:
         side = 2 * PATCH_HALF_PX + 1
         size = 2 * r + side
         c = (size - 1) / 2.0
-        found_px, found_rows, found_lin = [], [], []
-        for row, p, a in zip(cand.tolist(), uv, lin, strict=True):
-            det = a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]
-            if not np.isfinite(det) or det <= 0.1 or det > 10:
-                continue
-            m = np.hstack([a, (p - a @ [c, c])[:, None]]).astype(np.float64)
+        det = lin[:, 0, 0] * lin[:, 1, 1] - lin[:, 0, 1] * lin[:, 1, 0]
+        use = np.flatnonzero(np.isfinite(det) & (det > 0.1) & (det <= 10))
+        if len(use) == 0:
+            return MapMatches.none(n_cand, params.half_window_px)
+        a = lin[use].astype(np.float64)
+        p = uv[use].astype(np.float64)
+        warp = np.concatenate([a, (p - a @ np.array([c, c]))[:, :, None]], axis=2)
+        patches = self.patch[cand[use]]
+        n_side = 2 * r + 1
+        best = np.full(len(use), -np.inf)
+        x0 = np.zeros(len(use), np.int64)
+        y0 = np.zeros(len(use), np.int64)
+        # one matchTemplate per landmark: a batched FFT correlation with integral-image
+        # normalisation was twice as slow in numpy
+        for k in range(len(use)):
             region = cv2.warpAffine(
                 image,
-                m,
+                warp[k],
                 (size, size),
                 flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                 borderMode=cv2.BORDER_REPLICATE,
-            ).astype(np.float32)
-            score = cv2.matchTemplate(region, self.patch[row], cv2.TM_CCOEFF_NORMED)
-            _, best, _, loc = cv2.minMaxLoc(score)
-            if best < params.min_ncc:
+            )
+            score = cv2.matchTemplate(region.astype(np.float32), patches[k], cv2.TM_CCOEFF_NORMED)
+            _, top, _, (x, y) = cv2.minMaxLoc(score)
+            if top < params.min_ncc:
                 continue
             # unique: nothing else in the window nearly as good (repeated texture); the peak's
             # own slopes, within unique_exclusion_px of it, are no rival
-            x0, y0 = loc
-            masked = score.copy()
             e = params.unique_exclusion_px
-            masked[max(y0 - e, 0) : y0 + e + 1, max(x0 - e, 0) : x0 + e + 1] = -1.0
-            if masked.size > (2 * e + 1) ** 2 and float(masked.max()) > best - 0.1:
-                continue
-            found_px.append(p + a @ [x0 - r, y0 - r])
-            found_rows.append(row)
-            found_lin.append(a)
-        if not found_rows:
+            if n_side * n_side > (2 * e + 1) ** 2:
+                score[max(y - e, 0) : y + e + 1, max(x - e, 0) : x + e + 1] = -1.0
+                if float(score.max()) > top - 0.1:
+                    continue
+            best[k], x0[k], y0[k] = top, x, y
+        keep = np.flatnonzero(np.isfinite(best))
+        if len(keep) == 0:
             return MapMatches.none(n_cand, params.half_window_px)
-        rows = np.asarray(found_rows, np.int64)
+        offset = np.stack([x0[keep] - r, y0[keep] - r], axis=1).astype(np.float64)
+        found_px = p[keep] + (a[keep] @ offset[:, :, None])[:, :, 0]
+        rows = cand[use[keep]]
         templ = templates_from_patches(self.patch[rows], params.half_window_px)
         fit = refine_affine(
             templ,
             image,
-            np.asarray(found_px, np.float32),
-            np.asarray(found_lin, np.float32),
+            found_px.astype(np.float32),
+            a[keep].astype(np.float32),
             iterations=6,
             max_shift_px=2.0,
             max_rms=params.max_rms,
-            min_ncc=0.0,  # matchTemplate's NCC (params.min_ncc) and uniqueness checked it
+            min_ncc=0.0,  # the patch search's NCC (params.min_ncc) and uniqueness checked it
         )
         ok = np.flatnonzero(fit.ok)
         return MapMatches(

@@ -16,7 +16,12 @@ import numpy as np
 from slam.config import FrontendConfig
 from slam.core.calibration import Calibration
 from slam.core.geometry import skew, transform_points
-from slam.frontend.features import brightness_ratio, match_brightness, track_klt
+from slam.frontend.features import (
+    ReducedImages,
+    brightness_ratio,
+    match_brightness,
+    track_klt,
+)
 
 
 @dataclass(frozen=True, eq=False)
@@ -50,6 +55,7 @@ class StereoMatcher:
         pyr_right: np.ndarray,
         pixels_left: np.ndarray,
         points_cam0_m: np.ndarray | None = None,
+        reduced: ReducedImages | None = None,
     ) -> StereoMatches:
         """Match ``pixels_left`` (N, 2) into the right image.
 
@@ -58,6 +64,7 @@ class StereoMatcher:
         ``stereo_known_point_levels`` pyramid levels instead of the full pyramid that the
         nominal-depth guess needs, and a match must stay within ``stereo_known_max_shift_px`` of
         it instead of passing a backward track (together about half the stereo time).
+        ``reduced``: the caller's cache for :func:`brightness_ratio`.
         """
         n = len(pixels_left)
         if n == 0:
@@ -77,7 +84,7 @@ class StereoMatcher:
             # the two cameras' gains differ (a few %): scale the brighter image down first
             # (around the left pixels in both images: the same ratio whatever the guesses, so
             # known points and the nominal-depth start match the same)
-            ratio = brightness_ratio(pyr_left, pyr_right, pixels_left, pixels_left)
+            ratio = brightness_ratio(pyr_left, pyr_right, pixels_left, pixels_left, reduced)
             pyr_left, pyr_right = match_brightness(pyr_left, pyr_right, ratio)
         px_right = np.zeros((n, 2), np.float32)
         ok = np.zeros(n, dtype=bool)

@@ -37,6 +37,7 @@ from slam.core.messages import Estimate, FrontendCorrection, Keyframe, StereoFra
 from slam.cputime import runqueue_wait_ns, thread_cpu_s
 from slam.frontend.affine_klt import TrackTemplates
 from slam.frontend.features import (
+    ReducedImages,
     brightness_ratio,
     build_pyramid,
     detect_features,
@@ -61,6 +62,11 @@ class FrontendStats:
     imu_bridged: int = 0
     keyframes: int = 0
     estimate_corrections: int = 0
+    klt_predicted: int = 0
+    """Tracks started at their landmark's projection from the predicted pose
+    (``klt_predicted_levels``)..."""
+    klt_retracked: int = 0
+    """Tracks lost from a bad prediction, tracked again over the full pyramid."""
     track_refits: int = 0
     """Affine re-fits of tracks to their birth patch attempted (``affine_klt``)..."""
     track_refits_kept: int = 0
@@ -139,6 +145,7 @@ class FrontEnd:
             cfg.affine_half_window_px, cfg.affine_iterations, cfg.affine_min_ncc
         )
         self.pyr_prev: np.ndarray | None = None
+        self.reduced = ReducedImages()  # brightness_ratio's reduced images
         self.t_prev_ns = 0
         # pose state
         self.world_from_body: np.ndarray | None = None  # last tracked pose
@@ -426,12 +433,10 @@ class FrontEnd:
             delta = invert_transform(self.prev_world_from_body) @ self.world_from_body
             ratio = (t_ns - self.t_prev_ns) / self.prev_dt_ns
             if 0.0 < ratio < 5.0:
-                from scipy.spatial.transform import Rotation
-
-                rotvec = Rotation.from_matrix(delta[:3, :3]).as_rotvec() * ratio
-                delta = make_transform(
-                    Rotation.from_rotvec(rotvec).as_matrix(), delta[:3, 3] * ratio
-                )
+                # cv2.Rodrigues: scipy's Rotation cost ~0.7 ms per frame here
+                rotvec, _ = cv2.Rodrigues(np.ascontiguousarray(delta[:3, :3]))
+                rot, _ = cv2.Rodrigues(rotvec * ratio)
+                delta = make_transform(rot, delta[:3, 3] * ratio)
                 pose = self.world_from_body @ delta
         if rot_b0_b1 is not None:
             pose[:3, :3] = self.world_from_body[:3, :3] @ rot_b0_b1
@@ -450,10 +455,11 @@ class FrontEnd:
         pyr_from, pyr_to = self.pyr_prev, pyr
         if self.cfg.klt_match_brightness:
             ratio = brightness_ratio(
-                self.pyr_prev, pyr, self.px, self.px if guess is None else guess
+                self.pyr_prev, pyr, self.px, self.px if guess is None else guess, self.reduced
             )
             pyr_from, pyr_to = match_brightness(self.pyr_prev, pyr, ratio)
-        px, ok = track_klt(pyr_from, pyr_to, self.px, self.cfg, guess_to=guess)
+        pose_guess = self._predict_pose(frame.t_ns, rot_b0_b1)
+        px, ok = self._track_points(pyr_from, pyr_to, guess, pose_guess)
         num_tracked = int(ok.sum())
         self.px, self.ids, self.ages = px[ok], self.ids[ok], self.ages[ok] + 1
         if self.cfg.affine_refinement:
@@ -465,7 +471,6 @@ class FrontEnd:
             self.px[turn] = px_fit
             self.stats.track_refits += int(has_template.sum())
             self.stats.track_refits_kept += int(refitted.sum())
-        pose_guess = self._predict_pose(frame.t_ns, rot_b0_b1)
         has_lm = np.array([i in self.landmarks for i in self.ids.tolist()], dtype=bool)
         if has_lm.sum() < self.cfg.min_pnp_inliers:
             return self._lose(frame, t_start, f"only {int(has_lm.sum())} landmarks tracked")
@@ -504,6 +509,58 @@ class FrontEnd:
             num_tracked=num_tracked,
             num_inliers=n_in,
         )
+
+    def _track_points(
+        self,
+        pyr_from: np.ndarray,
+        pyr_to: np.ndarray,
+        gyro_guess: np.ndarray | None,
+        world_from_body_guess: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """KLT of the tracks ``self.px`` into the new image: ``(pixels (N, 2), ok (N,))``.
+
+        A landmark's track starts at the landmark's projection from the predicted pose
+        (``world_from_body_guess``: IMU dead reckoning from the back end's estimate, else
+        constant velocity with the gyro's rotation), the others at the gyro-rotated pixel
+        (``gyro_guess``), all on ``klt_predicted_levels`` pyramid levels instead of
+        ``klt_pyramid_levels``: with the back end's estimate the projection is within a few
+        pixels of where KLT ends. When more than ``klt_predicted_max_lost`` of the landmark
+        tracks are lost so (a bad prediction: constant velocity through a sharp turn), the
+        lost tracks are tracked again from the gyro guess over the full pyramid.
+        """
+        cfg = self.cfg
+        n = len(self.px)
+        levels = cfg.klt_predicted_levels
+        if levels >= cfg.klt_pyramid_levels or n == 0:
+            return track_klt(pyr_from, pyr_to, self.px, cfg, guess_to=gyro_guess)
+        rows = np.array([i in self.landmarks for i in self.ids.tolist()], dtype=bool)
+        start = (self.px if gyro_guess is None else gyro_guess).astype(np.float32)
+        predicted = np.zeros(n, bool)
+        if rows.any():
+            cam_from_world = self.cam0_from_body @ invert_transform(world_from_body_guess)
+            pts = np.array([self.landmarks[i] for i in self.ids[rows].tolist()])
+            pts_cam = transform_points(cam_from_world, pts)
+            front = pts_cam[:, 2] > 0.1
+            idx = np.flatnonzero(rows)[front]
+            proj = self.cam0.project(pts_cam[front])
+            h, w = pyr_to.shape[:2]
+            inside = (proj >= 0).all(axis=1) & (proj[:, 0] <= w - 1) & (proj[:, 1] <= h - 1)
+            start[idx[inside]] = proj[inside]
+            predicted[idx[inside]] = True
+        px, ok = track_klt(pyr_from, pyr_to, self.px, cfg, guess_to=start, levels=levels)
+        lost = predicted & ~ok
+        self.stats.klt_predicted += int(predicted.sum())
+        if lost.sum() > cfg.klt_predicted_max_lost * max(int(predicted.sum()), 1):
+            again = ~ok
+            self.stats.klt_retracked += int(again.sum())
+            px[again], ok[again] = track_klt(
+                pyr_from,
+                pyr_to,
+                self.px[again],
+                cfg,
+                guess_to=None if gyro_guess is None else gyro_guess[again],
+            )
+        return px, ok
 
     def _pnp_ransac(
         self, obj: np.ndarray, img: np.ndarray, guess_world_from_body: np.ndarray
@@ -753,7 +810,7 @@ class FrontEnd:
                 if lid >= 0 and lid in self.landmarks:
                     known_world[row] = self.landmarks[lid]
             known_cam = transform_points(invert_transform(world_from_cam), known_world)
-            matches = self.stereo.match(pyr, pyr_right, px, known_cam)
+            matches = self.stereo.match(pyr, pyr_right, px, known_cam, self.reduced)
             right_px[matches.ok] = matches.pixels_right[matches.ok]
             need = matches.ok & (ids < 0)
             pts_world = (

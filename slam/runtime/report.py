@@ -149,6 +149,7 @@ class Run:
             "relocalisations": fe.relocalisations,
             "imu_bridged_losses": fe.imu_bridged,
             "track_refits": {"attempted": fe.track_refits, "kept": fe.track_refits_kept},
+            "klt_predicted": {"tracks": fe.klt_predicted, "retracked": fe.klt_retracked},
             "backend": None
             if p.backend is None
             else {
