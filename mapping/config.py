@@ -45,7 +45,8 @@ class MapperStageConfig:
     """Keyframes dropped while the mapper was behind are held (their images, ~0.7 MB per
     752x480 pair) up to this many and fused at the end of the run, at their final poses; 0:
     dropped for good. Only a keyframe that shows something new is held (see
-    ``catch_up_min_distance_m``)."""
+    ``catch_up_min_distance_m``); when the hold is full, every other held keyframe is let go
+    and from then on only every other new view is held, so the hold stays spread over the run."""
     catch_up_min_distance_m: float = bounded(0.10, ge=0, unit="m")
     """A dropped keyframe is held only if it is this far from every keyframe sent or held..."""
     catch_up_min_angle_deg: float = bounded(8.0, ge=0, unit="deg")

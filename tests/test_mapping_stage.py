@@ -153,3 +153,22 @@ def test_dropped_repeat_views_are_not_held():
     moved[:3, 3] += [0.10, 0.0, 0.0]  # 15 cm: new
     assert stage._is_new_view(moved)
     stage.finish(None, None)
+
+
+def test_a_full_hold_is_thinned_and_stays_spread_over_the_run():
+    """Hold of 4, 12 dropped keyframes 1 m apart on a line (all new views): the hold never
+    exceeds 4 and ends as every 4th of them, from the start of the line to its end."""
+    from slam.core.messages import MapKeyframe
+
+    cfg = MapperStageConfig(enabled=True, num_planes=16, catch_up_max_keyframes=4)
+    stage = MapperStage(_calibration(), cfg, threaded=False)
+    img = np.zeros((H, W), np.uint8)
+    for i in range(12):
+        pose = np.eye(4)
+        pose[0, 3] = float(i)
+        assert stage._is_new_view(pose)
+        stage._hold(MapKeyframe(i, img, img, pose))
+        assert len(stage.held) <= 4
+    xs = [h.world_from_cam0[0, 3] for h in stage.held]
+    assert xs == [0.0, 4.0, 8.0]  # every 4th: an even subsample from the start
+    stage.finish(None, None)

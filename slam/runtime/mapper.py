@@ -227,6 +227,10 @@ class MapperStage(ProcessStage):
         """Dropped keyframes that showed something new: fused at the end (``catch_up_*``)."""
         self.caught_up = 0
         self._sent_poses: list[np.ndarray] = []
+        self._held_count: list[int] = []
+        """Per held keyframe: its number among the new views dropped (see :meth:`_hold`)."""
+        self._new_views_dropped = 0
+        self._hold_stride = 1
         self.loop_corrections = 0
         self.loop_reintegrated = 0
         self.map_from_odom: dict[int, np.ndarray] = {}
@@ -291,8 +295,8 @@ class MapperStage(ProcessStage):
         self.max_backlog_seen = max(self.max_backlog_seen, backlog)
         if self.use_process and backlog >= self.cfg.max_backlog:
             self.dropped_lag += 1
-            if len(self.held) < self.cfg.catch_up_max_keyframes and self._is_new_view(pose):
-                self.held.append(item)
+            if self.cfg.catch_up_max_keyframes > 0 and self._is_new_view(pose):
+                self._hold(item)
             return
         self._send_keyframe(item)
 
@@ -302,6 +306,24 @@ class MapperStage(ProcessStage):
             self._sent_wall[item.t_ns] = time.perf_counter()
         self._sent_poses.append(item.world_from_cam0)
         self.send(item)
+
+    def _hold(self, item: MapKeyframe) -> None:
+        """Hold a dropped new view for the catch-up. The hold keeps every ``stride``-th of
+        them; when it is full the stride doubles and the held ones off the new stride go, so
+        the hold stays an even subsample of the whole run, never just its first part."""
+        n = self._new_views_dropped
+        self._new_views_dropped += 1
+        if n % self._hold_stride:
+            return
+        if len(self.held) >= self.cfg.catch_up_max_keyframes:
+            self._hold_stride *= 2
+            keep = [i for i, c in enumerate(self._held_count) if c % self._hold_stride == 0]
+            self.held = [self.held[i] for i in keep]
+            self._held_count = [self._held_count[i] for i in keep]
+            if n % self._hold_stride:
+                return
+        self.held.append(item)
+        self._held_count.append(n)
 
     def _is_new_view(self, world_from_cam0: np.ndarray) -> bool:
         """Whether a pose is farther (or more rotated) than the catch-up thresholds from every
@@ -338,6 +360,7 @@ class MapperStage(ProcessStage):
                 time.sleep(0.005)
             self.caught_up += 1
         self.held.clear()
+        self._held_count.clear()
 
     def on_end(self) -> None:
         """The worker stays up for :meth:`finish` (the final poses are known only later)."""
