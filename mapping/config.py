@@ -41,17 +41,17 @@ class MapperStageConfig:
     TSDF 13 -> 34 ms CPU per depth map on 2 threads under load, BENCHMARKS.md "Mapping")."""
     max_backlog: int = bounded(4, ge=1)
     """Keyframes waiting for the mapper; beyond that a keyframe is dropped (and counted)."""
-    catch_up_max_keyframes: int = bounded(150, ge=0, unit="keyframes")
+    catch_up_max_keyframes: int = bounded(150, ge=0)
     """Keyframes dropped while the mapper was behind are held (their images, ~0.7 MB per
     752x480 pair) up to this many and fused at the end of the run, at their final poses; 0:
     dropped for good. Only a keyframe that shows something new is held (see
     ``catch_up_min_distance_m``); when the hold is full, every other held keyframe is let go
     and from then on only every other new view is held, so the hold stays spread over the run."""
-    catch_up_min_distance_m: float = bounded(0.10, ge=0, unit="m")
+    catch_up_min_distance_m: float = bounded(0.10, ge=0)
     """A dropped keyframe is held only if it is this far from every keyframe sent or held..."""
-    catch_up_min_angle_deg: float = bounded(8.0, ge=0, unit="deg")
+    catch_up_min_angle_deg: float = bounded(8.0, ge=0)
     """...or rotated this much from it (else its view is mostly fused already)."""
-    catch_up_s: float = bounded(60.0, ge=0, unit="s")
+    catch_up_s: float = bounded(60.0, ge=0)
     """End-of-run wall-time budget for fusing the held keyframes (spread over them: when it
     runs out, the ones left are evenly spaced in time, not the last stretch)."""
     mesh_every_s: float = bounded(5.0, ge=0)
