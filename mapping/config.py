@@ -33,12 +33,28 @@ class MapperStageConfig:
     """Depth at this fraction of the image size (0.5 is ~3-4x cheaper, but coarser)."""
     num_planes: int = bounded(96, ge=2)
     """Plane-sweep depth hypotheses (inverse-depth sampled; ``depth_method: sweep``)."""
-    sweep_threads: int = bounded(2, ge=1)
+    sweep_threads: int = bounded(1, ge=1)
     """Threads of the worker's depth (plane sweep strips; SGBM: OpenCV's pool) and fusion
     (numba); a background process (nice +15, or SCHED_IDLE: ``player.idle_workers``), so it
-    yields to tracking."""
+    yields to tracking. 1: the mapper needs ~0.3 of a core at ~3-4 keyframes/s, and a second
+    thread only takes the front end's core in bursts (numba's workers spin when descheduled:
+    TSDF 13 -> 34 ms CPU per depth map on 2 threads under load, BENCHMARKS.md "Mapping")."""
     max_backlog: int = bounded(4, ge=1)
     """Keyframes waiting for the mapper; beyond that a keyframe is dropped (and counted)."""
+    catch_up_max_keyframes: int = bounded(300, ge=0)
+    """Keyframes dropped while the mapper was behind are held (their images, ~0.7 MB per
+    752x480 pair: up to ~220 MB) up to this many and fused at the end of the run, at their
+    final poses (hall at --speed max: 150 -> 300 took completion 89.4 -> 94.8 %); 0:
+    dropped for good. Only a keyframe that shows something new is held (see
+    ``catch_up_min_distance_m``); when the hold is full, every other held keyframe is let go
+    and from then on only every other new view is held, so the hold stays spread over the run."""
+    catch_up_min_distance_m: float = bounded(0.10, ge=0)
+    """A dropped keyframe is held only if it is this far from every keyframe sent or held..."""
+    catch_up_min_angle_deg: float = bounded(8.0, ge=0)
+    """...or rotated this much from it (else its view is mostly fused already)."""
+    catch_up_s: float = bounded(60.0, ge=0)
+    """End-of-run wall-time budget for fusing the held keyframes (spread over them: when it
+    runs out, the ones left are evenly spaced in time, not the last stretch)."""
     mesh_every_s: float = bounded(5.0, ge=0)
     """Send a mesh snapshot to the viewer at most this often (marching cubes is not free)."""
     reintegrate_per_keyframe: int = bounded(2, ge=0, unit="keyframes")

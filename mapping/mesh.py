@@ -22,6 +22,7 @@ __all__ = [
     "TriangleMesh",
     "extract_mesh",
     "poisson_mesh",
+    "remove_small_components",
     "vertex_normals",
     "write_ply_mesh",
     "write_ply_points",
@@ -59,6 +60,29 @@ class TriangleMesh:
             np.zeros((0, 3), np.float32),
             np.zeros((0, 3), np.uint8),
         )
+
+
+def remove_small_components(mesh: TriangleMesh, min_vertices: int) -> TriangleMesh:
+    """The mesh without its connected pieces (vertices joined by face edges) of fewer than
+    ``min_vertices`` vertices: the speckle that single noisy depth maps leave, mostly far from
+    any surface. ``min_vertices`` <= 1 returns the mesh unchanged."""
+    n = mesh.num_vertices
+    if min_vertices <= 1 or n == 0:
+        return mesh
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    f = mesh.faces.astype(np.int64)
+    edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]]])
+    graph = coo_matrix((np.ones(len(edges), np.int8), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    keep = np.bincount(label)[label] >= min_vertices
+    if keep.all():
+        return mesh
+    new_index = np.cumsum(keep) - 1
+    faces = new_index[f[keep[f[:, 0]]]].astype(np.int32)  # a face's vertices share one label
+    colors = None if mesh.colors_rgb is None else mesh.colors_rgb[keep]
+    return TriangleMesh(mesh.vertices_m[keep], faces, mesh.normals[keep], colors)
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -128,3 +128,30 @@ def test_mesh_threshold_needs_multi_view_support(room):
     assert mapper.num_keyframes >= mapper.config.mesh_min_weight_keyframes
     thresholded = mapper.mesh(mapper.config.mesh_min_weight).num_vertices
     assert mapper.mesh().num_vertices == thresholded < mapper.mesh(0.0).num_vertices
+
+
+def test_small_mesh_components_are_removed():
+    """Two separate pieces: a 10x10-vertex grid and a 2-triangle speck; the speck goes, the
+    grid stays with its faces re-indexed onto the same coordinates."""
+    from mapping.mesh import TriangleMesh, remove_small_components
+
+    g = np.stack(np.meshgrid(np.arange(10.0), np.arange(10.0), indexing="ij"), -1).reshape(-1, 2)
+    grid = np.c_[g, np.zeros(len(g))]
+    idx = np.arange(100).reshape(10, 10)
+    a, b, c, d = (
+        idx[:-1, :-1].ravel(),
+        idx[1:, :-1].ravel(),
+        idx[:-1, 1:].ravel(),
+        idx[1:, 1:].ravel(),
+    )
+    grid_faces = np.r_[np.c_[a, b, d], np.c_[a, d, c]]
+    speck = np.array([[50.0, 0, 0], [51, 0, 0], [50, 1, 0], [51, 1, 0]])
+    verts = np.r_[speck, grid].astype(np.float32)  # the speck first: indices must shift
+    faces = np.r_[[[0, 1, 3], [0, 3, 2]], grid_faces + 4].astype(np.int32)
+    mesh = TriangleMesh(verts, faces, np.tile([0, 0, 1.0], (104, 1)).astype(np.float32),
+                        np.arange(104 * 3).reshape(104, 3).astype(np.uint8))  # fmt: skip
+    out = remove_small_components(mesh, 5)
+    assert out.num_vertices == 100 and out.num_faces == len(grid_faces)
+    np.testing.assert_array_equal(out.vertices_m[out.faces], verts[faces[2:]])
+    np.testing.assert_array_equal(out.colors_rgb, mesh.colors_rgb[4:])
+    assert remove_small_components(mesh, 0) is mesh

@@ -60,7 +60,9 @@ def test_stage_reports_lag_and_drops(threaded):
     stage.finish({}, None)
     stats = stage.stats()
     assert stats["keyframes_received"] == len(kfs)
-    assert stats["keyframes_sent"] + stats["keyframes_dropped_lag"] == len(kfs)
+    # dropped keyframes with a new view are sent at the end (caught up)
+    sent_live = stats["keyframes_sent"] - stats["keyframes_caught_up"]
+    assert sent_live + stats["keyframes_dropped_lag"] == len(kfs)
     processed = stats["keyframes_fused"] + stats["keyframes_skipped_static"]
     assert processed == stats["keyframes_sent"]
     assert stats["lag_wall_s"]["count"] == processed
@@ -109,3 +111,64 @@ def test_loop_correction_moves_the_map_during_the_run():
             want = shift @ kf.world_from_body_vo
             np.testing.assert_allclose(stored.world_from_view[:3, 3], want[:3, 3], atol=1e-9)
     stage.finish({}, None)
+
+
+def test_spread_order_is_a_permutation_spread_over_the_range():
+    from slam.runtime.mapper import spread_order
+
+    assert spread_order(0) == []
+    assert spread_order(1) == [0]
+    order = spread_order(10)
+    assert sorted(order) == list(range(10))
+    assert order[:4] == [0, 8, 4, 2]  # each prefix halves the largest gap
+
+
+def test_dropped_new_views_are_fused_at_the_end():
+    """A burst overflows a backlog of one keyframe; the dropped keyframes (all new views on the
+    orbit) are held and fused at the end at their final poses: every keyframe ends up fused
+    or skipped as static, none lost, while the live drop count stays what it was."""
+    cfg = MapperStageConfig(enabled=True, num_planes=32, max_backlog=1, final_reintegration=True)
+    stage = MapperStage(_calibration(), cfg, threaded=True)
+    kfs = _keyframes(6)
+    for kf in kfs:
+        stage.process(kf)
+    stage.finish({kf.t_ns: kf.world_from_body_vo for kf in kfs}, None)
+    stats = stage.stats()
+    assert stats["keyframes_dropped_lag"] >= 1
+    assert stats["keyframes_caught_up"] == stats["keyframes_dropped_lag"]
+    assert stats["keyframes_sent"] == len(kfs)
+    assert stats["keyframes_fused"] + stats["keyframes_skipped_static"] == len(kfs)
+
+
+def test_dropped_repeat_views_are_not_held():
+    """A keyframe that repeats a view already sent (same pose) is dropped for good."""
+    cfg = MapperStageConfig(enabled=True, num_planes=32, max_backlog=1, final_reintegration=False)
+    stage = MapperStage(_calibration(), cfg, threaded=True)
+    kf = _keyframes(1)[0]
+    assert stage._is_new_view(kf.world_from_body_vo)
+    stage._sent_poses.append(kf.world_from_body_vo)
+    moved = kf.world_from_body_vo.copy()
+    moved[:3, 3] += [0.05, 0.0, 0.0]  # 5 cm, same direction: not new
+    assert not stage._is_new_view(moved)
+    moved[:3, 3] += [0.10, 0.0, 0.0]  # 15 cm: new
+    assert stage._is_new_view(moved)
+    stage.finish(None, None)
+
+
+def test_a_full_hold_is_thinned_and_stays_spread_over_the_run():
+    """Hold of 4, 12 dropped keyframes 1 m apart on a line (all new views): the hold never
+    exceeds 4 and ends as every 4th of them, from the start of the line to its end."""
+    from slam.core.messages import MapKeyframe
+
+    cfg = MapperStageConfig(enabled=True, num_planes=16, catch_up_max_keyframes=4)
+    stage = MapperStage(_calibration(), cfg, threaded=False)
+    img = np.zeros((H, W), np.uint8)
+    for i in range(12):
+        pose = np.eye(4)
+        pose[0, 3] = float(i)
+        assert stage._is_new_view(pose)
+        stage._hold(MapKeyframe(i, img, img, pose))
+        assert len(stage.held) <= 4
+    xs = [h.world_from_cam0[0, 3] for h in stage.held]
+    assert xs == [0.0, 4.0, 8.0]  # every 4th: an even subsample from the start
+    stage.finish(None, None)

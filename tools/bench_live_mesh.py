@@ -5,7 +5,8 @@ Per suite sequence (``tools.benchmark.STANDARD_SUITE``, cached MCAPs), `slam run
 right after it, so the front end's p99 latency with and without the mapper is compared within
 one session. From the mesh run's outputs:
 
-- keyframes dropped by the mapper (``stats.json`` mapping.dropped_fraction), depth and
+- keyframes dropped by the mapper while behind (``stats.json`` mapping.dropped_fraction; those
+  with a new view are fused at the end, "caught up": ``mapping.catch_up_*``), depth and
   fusion wall ms per keyframe, and the mapper process's CPU ms per keyframe (what it needs of
   a core, whatever the load);
 - mesh accuracy: mean distance (m) of the vertices to the true scene, after aligning the run's
@@ -124,6 +125,7 @@ TABLE_COLUMNS = (
     ("kf", "keyframes_received", "{}"),
     ("dropped", "dropped_fraction", "{:.1%}"),
     ("fused", "fused", "{}"),
+    ("caught up", "caught_up", "{}"),
     ("depth ms p50", "depth_ms_p50", "{:.0f}"),
     ("fusion ms p50", "fusion_ms_p50", "{:.0f}"),
     ("mapper CPU ms/kf p50", "mapper_cpu_ms_p50", "{:.0f}"),
@@ -185,6 +187,7 @@ def main(argv: list[str] | None = None) -> int:
             "keyframes_received": mp.get("keyframes_received"),
             "dropped_fraction": round(float(mp.get("dropped_fraction", float("nan"))), 4),
             "fused": mp.get("keyframes_fused"),
+            "caught_up": mp.get("keyframes_caught_up"),
             "depth_ms_p50": (mp.get("depth") or {}).get("p50_ms"),
             "fusion_ms_p50": (mp.get("fusion") or {}).get("p50_ms"),
             "mapper_cpu_ms_p50": (mp.get("cpu_per_keyframe") or {}).get("p50_ms"),

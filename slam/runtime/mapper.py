@@ -67,6 +67,16 @@ def _make_mapper(calib: Calibration, cfg: MapperStageConfig) -> Any:
     return DenseMapper.from_calibration(calib, config)
 
 
+def spread_order(n: int) -> list[int]:
+    """0..n-1 in bit-reversed order: every prefix is spread evenly over the range (0, n/2,
+    n/4, 3n/4, ...), so a budget that runs out leaves gaps everywhere, not one long gap."""
+    if n <= 0:
+        return []
+    bits = max(1, (n - 1).bit_length())
+    order = [int(format(i, f"0{bits}b")[::-1], 2) for i in range(1 << bits)]
+    return [i for i in order if i < n]
+
+
 def _landmark_depth_range(kf: Keyframe, world_from_cam0: np.ndarray) -> tuple[float, float] | None:
     """(2nd, 98th) percentile depth (m) in cam0 of the keyframe's tracked landmarks; None with
     fewer than 20 in front of the camera."""
@@ -213,6 +223,14 @@ class MapperStage(ProcessStage):
         self.dropped_lag = 0
         self.max_backlog_seen = 0
         self.max_lag_s = 0.0
+        self.held: list[MapKeyframe] = []
+        """Dropped keyframes that showed something new: fused at the end (``catch_up_*``)."""
+        self.caught_up = 0
+        self._sent_poses: list[np.ndarray] = []
+        self._held_count: list[int] = []
+        """Per held keyframe: its number among the new views dropped (see :meth:`_hold`)."""
+        self._new_views_dropped = 0
+        self._hold_stride = 1
         self.loop_corrections = 0
         self.loop_reintegrated = 0
         self.map_from_odom: dict[int, np.ndarray] = {}
@@ -277,11 +295,72 @@ class MapperStage(ProcessStage):
         self.max_backlog_seen = max(self.max_backlog_seen, backlog)
         if self.use_process and backlog >= self.cfg.max_backlog:
             self.dropped_lag += 1
+            if self.cfg.catch_up_max_keyframes > 0 and self._is_new_view(pose):
+                self._hold(item)
             return
+        self._send_keyframe(item)
+
+    def _send_keyframe(self, item: MapKeyframe) -> None:
         with self._lock:
-            self.sent.append(msg.t_ns)
-            self._sent_wall[msg.t_ns] = time.perf_counter()
+            self.sent.append(item.t_ns)
+            self._sent_wall[item.t_ns] = time.perf_counter()
+        self._sent_poses.append(item.world_from_cam0)
         self.send(item)
+
+    def _hold(self, item: MapKeyframe) -> None:
+        """Hold a dropped new view for the catch-up. The hold keeps every ``stride``-th of
+        them; when it is full the stride doubles and the held ones off the new stride go, so
+        the hold stays an even subsample of the whole run, never just its first part."""
+        n = self._new_views_dropped
+        self._new_views_dropped += 1
+        if n % self._hold_stride:
+            return
+        if len(self.held) >= self.cfg.catch_up_max_keyframes:
+            self._hold_stride *= 2
+            keep = [i for i, c in enumerate(self._held_count) if c % self._hold_stride == 0]
+            self.held = [self.held[i] for i in keep]
+            self._held_count = [self._held_count[i] for i in keep]
+            if n % self._hold_stride:
+                return
+        self.held.append(item)
+        self._held_count.append(n)
+
+    def _is_new_view(self, world_from_cam0: np.ndarray) -> bool:
+        """Whether a pose is farther (or more rotated) than the catch-up thresholds from every
+        keyframe sent or held."""
+        poses = self._sent_poses + [h.world_from_cam0 for h in self.held]
+        if not poses:
+            return True
+        stack = np.asarray(poses)
+        dist = np.linalg.norm(stack[:, :3, 3] - world_from_cam0[:3, 3], axis=1)
+        # angle between the optical axes (the view direction is what decides what is seen)
+        cos = np.clip(stack[:, :3, 2] @ world_from_cam0[:3, 2], -1.0, 1.0)
+        near = (dist < self.cfg.catch_up_min_distance_m) & (
+            np.degrees(np.arccos(cos)) < self.cfg.catch_up_min_angle_deg
+        )
+        return not bool(near.any())
+
+    def _catch_up(self, final_world_from_cam0: dict[int, np.ndarray]) -> None:
+        """Fuse the held keyframes (at their final poses where known) within ``catch_up_s``,
+        in an order that spreads them over the run (see :func:`spread_order`), one in flight
+        at a time so that the budget is kept."""
+        deadline = time.monotonic() + self.cfg.catch_up_s
+        for k in spread_order(len(self.held)):
+            if time.monotonic() > deadline or self.error is not None or self.final_seen.is_set():
+                break
+            h = self.held[k]
+            pose = final_world_from_cam0.get(h.t_ns, h.world_from_cam0)
+            n_reports = len(self.reports)
+            self._send_keyframe(
+                MapKeyframe(h.t_ns, h.image_left, h.image_right, pose, h.landmark_depth_range_m)
+            )
+            while len(self.reports) == n_reports and time.monotonic() < deadline + 30.0:
+                if self.error is not None or self.final_seen.is_set():
+                    break
+                time.sleep(0.005)
+            self.caught_up += 1
+        self.held.clear()
+        self._held_count.clear()
 
     def on_end(self) -> None:
         """The worker stays up for :meth:`finish` (the final poses are known only later)."""
@@ -303,6 +382,13 @@ class MapperStage(ProcessStage):
         )
         if self.error is None and not self.final_seen.is_set():
             self.begin_end()
+            if self.held and final_world_from_body is not None:
+                self._catch_up(
+                    {
+                        int(t): np.asarray(p) @ self.body_from_cam0
+                        for t, p in final_world_from_body.items()
+                    }
+                )
             self.send(MapFinish(poses, None if mesh_path is None else str(mesh_path)))
             deadline = time.monotonic() + self.end_timeout_s
             while not self._summary_seen.wait(0.1) and time.monotonic() < deadline:
@@ -335,6 +421,7 @@ class MapperStage(ProcessStage):
             "keyframes_fused": len(fused),
             "keyframes_skipped_static": len(reports) - len(fused),
             "keyframes_dropped_lag": self.dropped_lag,
+            "keyframes_caught_up": self.caught_up,
             "max_backlog": self.max_backlog_seen,
             "max_lag_s": self.max_lag_s,
             "depth": latency_summary([r.depth_ms for r in fused]),
