@@ -87,15 +87,15 @@ class LoopClosureConfig:
     ``patch_max_change_deg``) is discarded (the descriptor pose stays)."""
     patch_max_change_deg: float = bounded(1.0, gt=0, le=180)
     """See ``patch_max_change_m``."""
-    live_correction: str = "unanchored"
+    live_correction: str = "latest"
     """The loop correction the live pose (``trajectory.tum``) is published under: its
     segment's latest (``map_from_odom``) for every frame (``latest``), or for frames not
     tracked on old landmarks only (``unanchored``: those get their odometry, which map reuse
     ties to the old map). Measured with patch-refined edges and ``pgo_align_to_odometry``
-    (BENCHMARKS.md, "Precise loop edges"): ``latest`` took the live ATE of room-figure8 from
-    4.25 to 3.40 mm and the hall's from 15.6 to 14.9, but room-aggressive's from 3.75 to 4.23:
-    not the default yet."""
-    pgo_align_to_odometry: bool = False
+    (BENCHMARKS.md, "Precise loop edges" and "After this session's merges"): sequential live
+    ATE se3 with ``unanchored`` and ``latest``: room-figure8 4.18 and 3.46 mm, room-aggressive
+    3.38 and 3.52, hall 15.92 and 15.91, the V1_01 flight 12.98 and 12.05."""
+    pgo_align_to_odometry: bool = True
     """Move each pose-graph result rigidly onto the odometry poses of its keyframes (least
     squares on positions) instead of leaving it where its fixed oldest keyframe holds it: the
     map frame then stays that of the odometry the live pose was published in before (with
