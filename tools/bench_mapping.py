@@ -218,21 +218,34 @@ def distance_to_scene(scene, points: np.ndarray) -> np.ndarray:
     return best
 
 
+def seen_in_depth(
+    pts: np.ndarray,
+    world_from_cam: np.ndarray,
+    depth: np.ndarray,
+    K: np.ndarray,
+    max_depth_m: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which world points (N, 3) a camera sees unoccluded: in its image, 0.1 m to
+    ``max_depth_m`` in front, and within 3 cm of its true depth map there. Returns (seen, depth
+    along the axis z, column u)."""
+    cw = invert_transform(world_from_cam)
+    pc = pts @ cw[:3, :3].T + cw[:3, 3]
+    z = pc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.round(K[0, 0] * pc[:, 0] / z + K[0, 2])
+        v = np.round(K[1, 1] * pc[:, 1] / z + K[1, 2])
+    h, w = depth.shape
+    ok = (z > 0.1) & (z < max_depth_m) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    d = np.zeros(len(pts))
+    d[ok] = depth[v[ok].astype(int), u[ok].astype(int)]
+    return ok & (np.abs(d - z) < 0.03), z, u
+
+
 def visible_samples(scene, poses, depths, K, max_depth_m: float, n: int = 200_000) -> np.ndarray:
     pts = scene.sample_surface_points(n, seed=1)
     vis = np.zeros(len(pts), bool)
     for pose, depth in zip(poses, depths):
-        cw = invert_transform(pose)
-        pc = pts @ cw[:3, :3].T + cw[:3, 3]
-        z = pc[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = np.round(K[0, 0] * pc[:, 0] / z + K[0, 2])
-            v = np.round(K[1, 1] * pc[:, 1] / z + K[1, 2])
-        h, w = depth.shape
-        ok = (z > 0.1) & (z < max_depth_m) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        d = np.zeros(len(pts))
-        d[ok] = depth[v[ok].astype(int), u[ok].astype(int)]
-        vis |= ok & (np.abs(d - z) < 0.03)
+        vis |= seen_in_depth(pts, pose, depth, K, max_depth_m)[0]
     return pts[vis]
 
 

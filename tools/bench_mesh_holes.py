@@ -57,23 +57,13 @@ def missed_reasons(
     miss: np.ndarray, normals: np.ndarray, poses: list, depths: list, K: np.ndarray
 ) -> dict[str, float]:
     """Shares of the missed samples by why they might be missing (see the module docstring)."""
-    from slam.core.geometry import invert_transform
+    from tools.bench_mapping import seen_in_depth
 
     nearest = np.full(len(miss), np.inf)
     left_only = np.ones(len(miss), bool)
     best_cos = np.zeros(len(miss))
     for pose, depth in zip(poses, depths):
-        cw = invert_transform(pose)
-        pc = miss @ cw[:3, :3].T + cw[:3, 3]
-        z = pc[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = np.round(K[0, 0] * pc[:, 0] / z + K[0, 2])
-            v = np.round(K[1, 1] * pc[:, 1] / z + K[1, 2])
-        h, w = depth.shape
-        ok = (z > 0.1) & (z < 4.0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        d = np.zeros(len(miss))
-        d[ok] = depth[v[ok].astype(int), u[ok].astype(int)]
-        seen = ok & (np.abs(d - z) < 0.03)
+        seen, z, u = seen_in_depth(miss, pose, depth, K, 4.0)
         nearest = np.where(seen, np.minimum(nearest, z), nearest)
         left_only &= ~(seen & (u >= 100))
         ray = miss - pose[:3, 3]
