@@ -54,7 +54,7 @@ def _two_views() -> tuple[FrontEnd, np.ndarray, np.ndarray, np.ndarray, np.ndarr
 
 def test_tracks_started_at_the_predicted_projection_land_on_the_truth() -> None:
     fe, img0, img1, pose1, truth = _two_views()
-    px, ok = fe._track_points(img0, img1, None, pose1)
+    px, ok = fe._track_points(img0, img1, None, pose1, np.ones(len(fe.px), bool))
     err = np.linalg.norm(px - truth, axis=1)[ok]
     assert ok.mean() > 0.9
     assert np.median(err) < 0.1 and np.percentile(err, 90) < 0.3
@@ -67,7 +67,7 @@ def test_a_bad_prediction_falls_back_to_the_full_pyramid() -> None:
     points; they are tracked again over the full pyramid and end as well as with a good one."""
     fe, img0, img1, pose1, truth = _two_views()
     wrong = pose1 @ make_transform(np.eye(3), np.array([0.35, 0.0, 0.0]))
-    px, ok = fe._track_points(img0, img1, None, wrong)
+    px, ok = fe._track_points(img0, img1, None, wrong, np.ones(len(fe.px), bool))
     err = np.linalg.norm(px - truth, axis=1)[ok]
     assert ok.mean() > 0.9
     assert np.median(err) < 0.1

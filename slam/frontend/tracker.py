@@ -459,9 +459,11 @@ class FrontEnd:
             )
             pyr_from, pyr_to = match_brightness(self.pyr_prev, pyr, ratio)
         pose_guess = self._predict_pose(frame.t_ns, rot_b0_b1)
-        px, ok = self._track_points(pyr_from, pyr_to, guess, pose_guess)
+        has_lm = np.array([i in self.landmarks for i in self.ids.tolist()], dtype=bool)
+        px, ok = self._track_points(pyr_from, pyr_to, guess, pose_guess, has_lm)
         num_tracked = int(ok.sum())
         self.px, self.ids, self.ages = px[ok], self.ids[ok], self.ages[ok] + 1
+        has_lm = has_lm[ok]
         if self.cfg.affine_refinement:
             period = self.cfg.affine_period_frames
             turn = (self.ids >= 0) & (self.ids % period == self.stats.frames % period)
@@ -471,7 +473,6 @@ class FrontEnd:
             self.px[turn] = px_fit
             self.stats.track_refits += int(has_template.sum())
             self.stats.track_refits_kept += int(refitted.sum())
-        has_lm = np.array([i in self.landmarks for i in self.ids.tolist()], dtype=bool)
         if has_lm.sum() < self.cfg.min_pnp_inliers:
             return self._lose(frame, t_start, f"only {int(has_lm.sum())} landmarks tracked")
         idx = np.flatnonzero(has_lm)
@@ -516,8 +517,10 @@ class FrontEnd:
         pyr_to: np.ndarray,
         gyro_guess: np.ndarray | None,
         world_from_body_guess: np.ndarray,
+        has_landmark: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """KLT of the tracks ``self.px`` into the new image: ``(pixels (N, 2), ok (N,))``.
+        """KLT of the tracks ``self.px`` into the new image: ``(pixels (N, 2), ok (N,))``;
+        ``has_landmark`` (N,): which tracks are of landmarks.
 
         A landmark's track starts at the landmark's projection from the predicted pose
         (``world_from_body_guess``: IMU dead reckoning from the back end's estimate, else
@@ -533,7 +536,7 @@ class FrontEnd:
         levels = cfg.klt_predicted_levels
         if levels >= cfg.klt_pyramid_levels or n == 0:
             return track_klt(pyr_from, pyr_to, self.px, cfg, guess_to=gyro_guess)
-        rows = np.array([i in self.landmarks for i in self.ids.tolist()], dtype=bool)
+        rows = has_landmark
         start = (self.px if gyro_guess is None else gyro_guess).astype(np.float32)
         predicted = np.zeros(n, bool)
         if rows.any():
