@@ -34,7 +34,13 @@ import cv2
 import numpy as np
 
 from slam.core.calibration import Calibration
-from slam.core.geometry import invert_transform, rotation_angle_rad, so3_exp_batch, so3_log
+from slam.core.geometry import (
+    invert_transform,
+    rotation_angle_rad,
+    skew,
+    so3_exp_batch,
+    so3_log,
+)
 from slam.core.messages import Keyframe, LoopCorrection
 from slam.loop.config import LoopClosureConfig
 from slam.loop.database import LoopDetector, LoopDetectorParams
@@ -496,8 +502,7 @@ class LoopCloser:
         self.stats.patch_refined += 1
         # delta_body = Ad(body_from_cam0) delta_cam (right perturbations, translation first)
         rot, pos = self.body_from_cam0[:3, :3], self.body_from_cam0[:3, 3]
-        skew = np.array([[0, -pos[2], pos[1]], [pos[2], 0, -pos[0]], [-pos[1], pos[0], 0]])
-        adj = np.block([[rot, skew @ rot], [np.zeros((3, 3)), rot]])
+        adj = np.block([[rot, skew(pos) @ rot], [np.zeros((3, 3)), rot]])
         adj_inv = np.linalg.inv(adj)
         info = adj_inv.T @ ref.information @ adj_inv * self.cfg.patch_information_scale
         return ref.candidate_cam_from_query_cam, 0.5 * (info + info.T)
