@@ -324,3 +324,44 @@ def test_rigid_fit_recovers_a_gauge_change() -> None:
     moved = pts @ gauge[:3, :3].T + gauge[:3, 3]
     back = _rigid_fit(moved, pts)
     assert np.allclose(back @ gauge, np.eye(4), atol=1e-9)
+
+
+def test_covisibility_edge_fits_the_relative_pose_of_a_map_reuse(loop_scene, vocab) -> None:
+    """A keyframe that re-observes an older keyframe's landmarks (map reuse) gets a pose-graph
+    edge to it, fitted on patches from the odometry's relative pose: its error against the
+    truth is far below the odometry's."""
+    import dataclasses
+
+    seq, _ = loop_scene
+    kfs = ground_truth_keyframes(seq, [40, 50, 60])
+    first, last = kfs[0].keyframe, kfs[2].keyframe
+    ids = last.landmark_ids.copy()
+    ids[:20] = first.landmark_ids[:20]  # the front end found 20 of them again
+    error = make_transform(so3_exp(np.radians([0.1, -0.1, 0.05])), [0.005, -0.003, 0.002])
+    pts = last.points_world_vo @ error[:3, :3].T + error[:3, 3]
+    moved = dataclasses.replace(
+        last,
+        landmark_ids=ids,
+        world_from_body_vo=error @ last.world_from_body_vo,
+        points_world_vo=pts,
+    )
+    cfg = LoopClosureConfig(covisibility_min_gap_s=0.0, covisibility_edges="found")
+    closer = LoopCloser(seq.calibration, cfg, vocabulary=vocab)
+    closer.add_keyframe(first, kfs[0].world_from_body_odom)
+    closer.add_keyframe(kfs[1].keyframe, kfs[1].world_from_body_odom)
+    closer.add_keyframe(moved, moved.world_from_body_vo)
+    assert closer.stats.covisibility_edges == 1
+    edge = closer.covisibility_edges[0]
+    assert (edge.from_id, edge.to_id) == (0, 2)
+    true_rel = invert_transform(kfs[0].world_from_body_true) @ kfs[2].world_from_body_true
+    odom_rel = invert_transform(closer.odom[0]) @ closer.odom[2]
+    err_odom = np.linalg.norm(odom_rel[:3, 3] - true_rel[:3, 3])
+    err_edge = np.linalg.norm(edge.from_node_from_to_node[:3, 3] - true_rel[:3, 3])
+    assert err_odom > 0.005
+    assert err_edge < 0.3 * err_odom, (err_edge, err_odom)
+    rot_err = rotation_angle_rad(edge.from_node_from_to_node[:3, :3].T @ true_rel[:3, :3])
+    assert np.degrees(rot_err) < 0.05
+    # the pose graph carries it (not as a loop)
+    closer.add_loop_constraint(2, 0, true_rel)
+    req = closer.pgo_request()
+    assert any((e.from_id, e.to_id) == (0, 2) for e in req.odometry_edges)

@@ -69,6 +69,8 @@ from slam.posegraph import (
     optimize,
 )
 
+COVISIBILITY_EDGES = ("off", "found", "tracked")  # loop.covisibility_edges
+
 
 def odometry_sigmas(rel: np.ndarray, dt_s: float, cfg: LoopClosureConfig) -> tuple[float, float]:
     """(translation sigma m, rotation sigma rad) per axis of an odometry edge spanning
@@ -213,11 +215,14 @@ class LoopStats:
     rejected_unconfirmed: int = 0
     rejected_by_pgo: int = 0
     patch_refined: int = 0
+    covisibility_attempts: int = 0
+    covisibility_edges: int = 0
     pgo_runs: int = 0
     pgo_ms: list[float] = field(default_factory=list)
     describe_ms: list[float] = field(default_factory=list)
     query_ms: list[float] = field(default_factory=list)
     verify_ms: list[float] = field(default_factory=list)
+    covisibility_ms: list[float] = field(default_factory=list)
 
     def summary(self) -> dict[str, object]:
         from slam.core.latency import latency_summary as pct
@@ -232,6 +237,9 @@ class LoopStats:
             "rejected_unconfirmed": self.rejected_unconfirmed,
             "rejected_by_pgo": self.rejected_by_pgo,
             "patch_refined": self.patch_refined,
+            "covisibility_attempts": self.covisibility_attempts,
+            "covisibility_edges": self.covisibility_edges,
+            "covisibility": pct(self.covisibility_ms),
             "pgo_runs": self.pgo_runs,
             "pgo": pct(self.pgo_ms),
             "describe": pct(self.describe_ms),
@@ -263,6 +271,11 @@ class LoopCloser:
         store: KeyframeStore | None = None,
     ):
         self.cfg = cfg or LoopClosureConfig()
+        if self.cfg.covisibility_edges not in COVISIBILITY_EDGES:
+            raise ValueError(
+                f"loop.covisibility_edges must be one of {COVISIBILITY_EDGES}, "
+                f"got {self.cfg.covisibility_edges!r}"
+            )
         self.calib = calib
         self.intr = calib.cameras[0].intrinsics
         self.K = self.intr.K
@@ -302,7 +315,9 @@ class LoopCloser:
         self.component: dict[int, int] = {}  # segment -> root segment (union-find)
         self.track_start_of_landmark: dict[int, int] = {}  # keyframe id
         self.last_kf_of_landmark: dict[int, int] = {}
+        self.first_kf_of_landmark: dict[int, int] = {}
         self.loops: list[LoopRecord] = []
+        self.covisibility_edges: list[PoseEdge] = []  # map reuse's ties, see _add_covisibility_edge
         self.map_generation = 0
         self.needs_pgo = False
         self._request_id = 0
@@ -370,13 +385,21 @@ class LoopCloser:
         # it in its map) starts a new track, so a revisit stays a loop
         prev_kf = self.prev_in_segment.get(kf.keyframe_id)
         covisible_from = kf.keyframe_id
+        seen_first: dict[int, int] = {}  # older keyframe -> its landmarks seen here
+        tracked_too = self.cfg.covisibility_edges == "tracked"
         for lid in np.asarray(kf.landmark_ids).tolist():
             lid = int(lid)
-            if prev_kf is None or self.last_kf_of_landmark.get(lid) != prev_kf:
+            first = self.first_kf_of_landmark.setdefault(lid, kf.keyframe_id)
+            found_again = prev_kf is None or self.last_kf_of_landmark.get(lid) != prev_kf
+            if first != kf.keyframe_id and (found_again or tracked_too):
+                seen_first[first] = seen_first.get(first, 0) + 1
+            if found_again:
                 self.track_start_of_landmark[lid] = kf.keyframe_id
             covisible_from = min(covisible_from, self.track_start_of_landmark[lid])
             self.last_kf_of_landmark[lid] = kf.keyframe_id
         seg = kf.segment_id
+        if self.cfg.covisibility_edges != "off" and seen_first:
+            self._add_covisibility_edge(kf, desc, seen_first)
 
         def exclude(other: int) -> bool:  # covisible: same segment, shares tracked landmarks
             return self.segment_of.get(other) == seg and other >= covisible_from
@@ -417,6 +440,72 @@ class LoopCloser:
         else:
             self.path_m[k] = 0.0
         self.last_of_segment[seg] = k
+
+    def _add_covisibility_edge(
+        self, kf: Keyframe, desc: KeyframeDescription, seen_first: dict[int, int]
+    ) -> None:
+        """An edge to the keyframe at least ``covisibility_min_gap_s`` older that first saw
+        the largest number of this keyframe's landmarks (the front end tracks them again:
+        map reuse), its relative pose fitted on patches from the odometry's
+        (``verify.refine_on_patches``, as a loop edge): the pose graph then holds the tie to
+        the old map that map reuse gives the odometry, and a loop correction no longer pulls
+        against it. Nothing when the fit fails or moves the odometry's relative pose by more
+        than ``patch_max_change_*``."""
+        c = self.cfg
+        q = kf.keyframe_id
+        seg = self.segment_of[q]
+        min_gap_ns = int(c.covisibility_min_gap_s * 1e9)
+        older = [
+            (n, k)
+            for k, n in seen_first.items()
+            if n >= c.covisibility_min_landmarks
+            and self.segment_of.get(k) == seg
+            and self.t_ns_of[q] - self.t_ns_of[k] >= min_gap_ns
+            and k in self.images
+            and self.store.has(k)
+        ]
+        if not older:
+            return
+        t0 = time.perf_counter()
+        _, match = max(older)
+        odom_rel = invert_transform(self.odom[match]) @ self.odom[q]
+        guess = self.cam0_from_body @ odom_rel @ self.body_from_cam0
+        cand = self.store.description(match)
+        ref = refine_on_patches(
+            guess,
+            self.intr,
+            self.images[match],
+            cand.landmark_xy_undist,
+            cand.landmark_points_cam,
+            kf.image_left,
+            desc.landmark_xy_undist,
+            desc.landmark_points_cam,
+        )
+        self.stats.covisibility_attempts += 1
+        self.stats.covisibility_ms.append((time.perf_counter() - t0) * 1e3)
+        if ref is None:
+            return
+        change = invert_transform(guess) @ ref.candidate_cam_from_query_cam
+        if (
+            np.linalg.norm(change[:3, 3]) > c.patch_max_change_m
+            or np.degrees(rotation_angle_rad(change[:3, :3])) > c.patch_max_change_deg
+        ):
+            return
+        measured = self.body_from_cam0 @ ref.candidate_cam_from_query_cam @ self.cam0_from_body
+        self.covisibility_edges.append(
+            PoseEdge(match, q, measured, self._body_information(ref.information))
+        )
+        self.stats.covisibility_edges += 1
+
+    def _body_information(self, cam_information: np.ndarray) -> np.ndarray:
+        """A patch fit's information (cam0 frame) moved to the body frame, times
+        ``patch_information_scale``."""
+        # delta_body = Ad(body_from_cam0) delta_cam (right perturbations, translation first)
+        rot, pos = self.body_from_cam0[:3, :3], self.body_from_cam0[:3, 3]
+        adj = np.block([[rot, skew(pos) @ rot], [np.zeros((3, 3)), rot]])
+        adj_inv = np.linalg.inv(adj)
+        info = adj_inv.T @ cam_information @ adj_inv * self.cfg.patch_information_scale
+        return 0.5 * (info + info.T)
 
     # ------------------------------------------------------------------ verification
     def _verify(
@@ -500,12 +589,7 @@ class LoopCloser:
         ):
             return ver.candidate_cam_from_query_cam, None
         self.stats.patch_refined += 1
-        # delta_body = Ad(body_from_cam0) delta_cam (right perturbations, translation first)
-        rot, pos = self.body_from_cam0[:3, :3], self.body_from_cam0[:3, 3]
-        adj = np.block([[rot, skew(pos) @ rot], [np.zeros((3, 3)), rot]])
-        adj_inv = np.linalg.inv(adj)
-        info = adj_inv.T @ ref.information @ adj_inv * self.cfg.patch_information_scale
-        return ref.candidate_cam_from_query_cam, 0.5 * (info + info.T)
+        return ref.candidate_cam_from_query_cam, self._body_information(ref.information)
 
     def _verify_and_gate(
         self, kf: Keyframe, desc: KeyframeDescription, candidates: list[int]
@@ -672,7 +756,9 @@ class LoopCloser:
         nodes = self._members(root)
         node_set = set(nodes)
         poses = {k: self.corrected_pose(k) for k in nodes}
-        odo = self._odometry_edges(nodes)
+        odo = self._odometry_edges(nodes) + [
+            e for e in self.covisibility_edges if e.from_id in node_set and e.to_id in node_set
+        ]
         loops = [r for r in active if r.query_kf_id in node_set and r.match_kf_id in node_set]
         self._request_id += 1
         self.needs_pgo = False
