@@ -215,7 +215,6 @@ class LoopStats:
     rejected_unconfirmed: int = 0
     rejected_by_pgo: int = 0
     patch_refined: int = 0
-    patch_verified: int = 0
     covisibility_attempts: int = 0
     covisibility_edges: int = 0
     pgo_runs: int = 0
@@ -238,7 +237,6 @@ class LoopStats:
             "rejected_unconfirmed": self.rejected_unconfirmed,
             "rejected_by_pgo": self.rejected_by_pgo,
             "patch_refined": self.patch_refined,
-            "patch_verified": self.patch_verified,
             "covisibility_attempts": self.covisibility_attempts,
             "covisibility_edges": self.covisibility_edges,
             "covisibility": pct(self.covisibility_ms),
@@ -593,103 +591,20 @@ class LoopCloser:
         self.stats.patch_refined += 1
         return ref.candidate_cam_from_query_cam, self._body_information(ref.information)
 
-    def _verify_on_patches(
-        self, kf: Keyframe, desc: KeyframeDescription, candidates: list[int]
-    ) -> tuple[int, LoopVerification | None, np.ndarray, np.ndarray | None]:
-        """The second chance of a loop the descriptors alone did not verify (a true revisit
-        ~1 m / 30 deg from the first view gives 7-30 PnP inliers): landmark-to-landmark PnP
-        with ``patch_verify_min_inliers``, then the patch refinement from that pose, which
-        must fit at least ``patch_verify_min_landmarks`` landmarks of both keyframes (NCC >=
-        0.9 within 3 px of where the pose puts them) and stay within ``patch_max_change_*``.
-        Returns (candidate, verification, candidate_cam_from_query_cam, information), the
-        verification None when no candidate passes."""
-        c = self.cfg
-        params = dataclasses.replace(
-            self.verify_params,
-            min_inliers=c.patch_verify_min_inliers,
-            min_matches=min(self.verify_params.min_matches, c.patch_verify_min_inliers),
-        )
-        best: tuple[int, LoopVerification | None, np.ndarray, np.ndarray | None] = (
-            -1,
-            None,
-            np.eye(4),
-            None,
-        )
-        best_fitted = 0
-        for cand in candidates:
-            if not self.store.has(cand) or cand not in self.images:
-                continue
-            cd = self.store.description(cand)
-            if len(desc.landmark_xy_undist) != len(desc.landmark_desc) or len(
-                cd.landmark_xy_undist
-            ) != len(cd.landmark_desc):
-                continue
-            ver = verify_loop_landmarks(
-                desc.landmark_xy_undist,
-                desc.landmark_desc,
-                desc.landmark_points_cam,
-                cd.landmark_xy_undist,
-                cd.landmark_desc,
-                cd.landmark_points_cam,
-                self.K,
-                params,
-            )
-            if ver is None:
-                continue
-            ref = refine_on_patches(
-                ver.candidate_cam_from_query_cam,
-                self.intr,
-                self.images[cand],
-                cd.landmark_xy_undist,
-                cd.landmark_points_cam,
-                kf.image_left,
-                desc.landmark_xy_undist,
-                desc.landmark_points_cam,
-            )
-            if ref is None or ref.forward + ref.backward < c.patch_verify_min_landmarks:
-                continue
-            change = (
-                invert_transform(ver.candidate_cam_from_query_cam)
-                @ ref.candidate_cam_from_query_cam
-            )
-            if (
-                np.linalg.norm(change[:3, 3]) > c.patch_max_change_m
-                or np.degrees(rotation_angle_rad(change[:3, :3])) > c.patch_max_change_deg
-            ):
-                continue
-            fitted = ref.forward + ref.backward
-            if fitted > best_fitted:
-                best_fitted = fitted
-                best = (
-                    cand,
-                    ver,
-                    ref.candidate_cam_from_query_cam,
-                    self._body_information(ref.information),
-                )
-        if best[1] is not None:
-            self.stats.patch_verified += 1
-            self.stats.patch_refined += 1
-        return best
-
     def _verify_and_gate(
         self, kf: Keyframe, desc: KeyframeDescription, candidates: list[int]
     ) -> LoopEvent:
         q = kf.keyframe_id
         t0 = time.perf_counter()
         match, ver, method = self._verify(desc, candidates)
-        cand_from_query, information = np.eye(4), None
-        if ver is None and self.cfg.patch_verification and self.cfg.patch_refinement:
-            match, ver, cand_from_query, information = self._verify_on_patches(kf, desc, candidates)
-            method = "landmarks"
-        elif ver is not None:
-            cand_from_query = ver.candidate_cam_from_query_cam
-            if method == "landmarks" and self.cfg.patch_refinement:
-                cand_from_query, information = self._refine_on_patches(kf, desc, match, ver)
         self.stats.verify_ms.append((time.perf_counter() - t0) * 1e3)
         if ver is None:
             self.stats.rejected_verification += 1
             return LoopEvent(kf.t_ns, q, candidates[0], "rejected", "verification failed", 0)
         self.stats.verified += 1
+        cand_from_query, information = ver.candidate_cam_from_query_cam, None
+        if method == "landmarks" and self.cfg.patch_refinement:
+            cand_from_query, information = self._refine_on_patches(kf, desc, match, ver)
         measured = self.body_from_cam0 @ cand_from_query @ self.cam0_from_body
         pairs = None
         if method == "landmarks":

@@ -87,17 +87,6 @@ class LoopClosureConfig:
     ``patch_max_change_deg``) is discarded (the descriptor pose stays)."""
     patch_max_change_deg: float = bounded(1.0, gt=0, le=180)
     """See ``patch_max_change_m``."""
-    patch_verification: bool = False
-    """When no candidate passes the descriptor verification, retry landmark to landmark
-    with ``patch_verify_min_inliers`` PnP inliers and accept a candidate whose patch
-    refinement (``patch_refinement``) then fits ``patch_verify_min_landmarks`` landmarks of
-    both keyframes (true revisits ~1 m / 30 deg apart give 7-30 descriptor inliers). The
-    plausibility gate still applies. Measured: BENCHMARKS.md."""
-    # bounds: a PnP pose needs 4 points (solvePnPRansac asserts it)
-    patch_verify_min_inliers: int = bounded(12, ge=4)
-    """PnP inliers needed before the patch check (``patch_verification``)."""
-    patch_verify_min_landmarks: int = bounded(80, ge=20)
-    """Landmarks the patch fit must keep (both directions) to accept such a loop."""
     covisibility_edges: str = "found"
     """Pose-graph edges between keyframes that share landmarks across a gap: from a keyframe
     to the older keyframe that first saw the largest number of its landmarks, fitted on
