@@ -87,13 +87,15 @@ class LoopClosureConfig:
     ``patch_max_change_deg``) is discarded (the descriptor pose stays)."""
     patch_max_change_deg: float = bounded(1.0, gt=0, le=180)
     """See ``patch_max_change_m``."""
-    covisibility_edges: str = "found"
+    covisibility_edges: str = "off"
     """Pose-graph edges between keyframes that share landmarks across a gap: from a keyframe
     to the older keyframe that first saw the largest number of its landmarks, fitted on
     patches from the odometry's relative pose (needs ``patch_refinement``), so that a loop
     correction keeps the tie to the old map that map reuse gives the odometry. Counted
     landmarks: those the front end ``found`` again at this keyframe (map reuse), or every
-    ``tracked`` one; ``off``: none. Measured: BENCHMARKS.md."""
+    ``tracked`` one; ``off``: none. Off by default: sequential live ATE with ``found``
+    figure8 3.46 -> 3.62 mm, aggressive 3.52 -> 3.64 (loop-closed 2.15 -> 1.87), hall 15.91
+    -> 15.43, V1_01 12.05 -> 11.98 (BENCHMARKS.md, "Covisibility edges")."""
     covisibility_min_landmarks: int = bounded(10, ge=1)
     """... when it sees at least this many landmarks that keyframe first saw ..."""
     covisibility_min_gap_s: float = bounded(3.0, ge=0)
