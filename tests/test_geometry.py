@@ -73,3 +73,15 @@ def test_rotation_angle_matches_the_rotation_vector_norm():
         rot = so3_exp(angle * axis / np.linalg.norm(axis))
         assert abs(rotation_angle_rad(rot) - angle) < 1e-9
         assert abs(rotation_angle_rad(rot) - np.linalg.norm(so3_log(rot))) < 1e-9
+
+
+def test_so3_right_jacobian_maps_a_rotation_vector_step_to_the_right_increment():
+    from slam.core.geometry import so3_exp, so3_log, so3_right_jacobian
+
+    rng = np.random.default_rng(5)
+    for angle in (0.0, 1e-7, 0.3, 2.0):
+        axis = rng.normal(size=3)
+        w = angle * axis / np.linalg.norm(axis)
+        d = 1e-6 * rng.normal(size=3)
+        increment = so3_log(so3_exp(w).T @ so3_exp(w + d))  # exp(w + d) = exp(w) exp(inc)
+        assert np.allclose(increment, so3_right_jacobian(w) @ d, atol=1e-12)

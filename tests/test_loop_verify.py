@@ -162,3 +162,58 @@ def test_patch_refinement_refuses_another_place(rendered_pair) -> None:
         _cam_points(c.keyframe, cam.body_from_cam),
     )
     assert ref is None
+
+
+def test_two_way_reprojection_jacobian_matches_finite_differences():
+    """The analytic Jacobian of ``refine_symmetric``'s residuals (rotation vector,
+    translation) against central differences of the same residuals."""
+    from scipy.optimize._numdiff import approx_derivative
+
+    from slam.core.geometry import so3_exp, so3_right_jacobian
+    from slam.loop.verify import _project, _skew_batch, _two_way_jacobian
+
+    rng = np.random.default_rng(3)
+    k = np.array([[450.0, 0, 370], [0, 455.0, 240], [0, 0, 1]])
+    pc = rng.uniform([-1, -1, 2], [1, 1, 5], (25, 3))
+    pq = rng.uniform([-1, -1, 2], [1, 1, 5], (25, 3))
+
+    def residuals(x):
+        rot, t = so3_exp(x[:3]), x[3:]
+        return np.concatenate(
+            [_project((pc - t) @ rot, k).ravel(), _project(pq @ rot.T + t, k).ravel()]
+        )
+
+    x = np.array([0.3, -0.2, 0.5, 0.1, 0.05, -0.2])
+    rot, jr, t = so3_exp(x[:3]), so3_right_jacobian(x[:3]), x[3:]
+    a_in_q = (pc - t) @ rot
+    d_a = np.concatenate([_skew_batch(a_in_q) @ jr, np.broadcast_to(-rot.T, (25, 3, 3))], 2)
+    d_b = np.concatenate([-(rot @ _skew_batch(pq)) @ jr, np.broadcast_to(np.eye(3), (25, 3, 3))], 2)
+    analytic = _two_way_jacobian(k, a_in_q, d_a, pq @ rot.T + t, d_b)
+    numeric = approx_derivative(residuals, x, method="3-point")
+    assert np.abs(analytic - numeric).max() < 1e-5 * np.abs(numeric).max()
+
+
+def test_refine_symmetric_recovers_the_pose_despite_outliers():
+    """Two-way Huber refinement from a pose 3 cm / ~1.7 deg off, on noisy pixels (0.5 px),
+    0.3 % depth errors and 10 % gross outliers: back within 5 mm and 0.1 deg of the truth."""
+    from slam.core.geometry import rotation_angle_rad
+    from slam.loop.verify import _project, refine_symmetric
+
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        n = 60
+        true = make_transform(so3_exp(rng.normal(size=3) * 0.2), rng.normal(size=3) * 0.3)
+        pq = rng.uniform([-2, -1.5, 1.5], [2, 1.5, 6], (n, 3))
+        pc = pq @ true[:3, :3].T + true[:3, 3]  # true = candidate_cam_from_query_cam
+        uq = _project(pq, K) + rng.normal(size=(n, 2)) * 0.5
+        uc = _project(pc, K) + rng.normal(size=(n, 2)) * 0.5
+        gross = rng.random(n) < 0.1
+        uq[gross] += rng.normal(size=(int(gross.sum()), 2)) * 20
+        pc_noisy = pc * (1 + rng.normal(size=(n, 1)) * 0.003)
+        pq_noisy = pq * (1 + rng.normal(size=(n, 1)) * 0.003)
+        pq_noisy[rng.random(n) < 0.2] = np.nan  # no stereo depth: one direction only
+        start = true @ make_transform(so3_exp(rng.normal(size=3) * 0.017), [0.03, 0, 0])
+        est = refine_symmetric(start, pc_noisy, uq, pq_noisy, uc, K)
+        err = invert_transform(true) @ est
+        assert np.linalg.norm(err[:3, 3]) < 0.005
+        assert np.degrees(rotation_angle_rad(err[:3, :3])) < 0.1

@@ -122,6 +122,20 @@ def so3_exp_batch(omegas: np.ndarray) -> np.ndarray:
     return np.eye(3) + a[:, None, None] * k + b[:, None, None] * (k @ k)
 
 
+def so3_right_jacobian(omega: np.ndarray) -> np.ndarray:
+    """Right Jacobian J_r (3x3) of SO(3) at rotation vector ``omega`` (rad):
+    ``exp(omega + d) ~= exp(omega) @ exp(J_r(omega) @ d)``; the left one is ``J_r(-omega)``."""
+    w = np.asarray(omega, dtype=float).reshape(3)
+    theta2 = float(w @ w)
+    k = skew(w)
+    if theta2 < 1e-12:
+        return np.eye(3) - 0.5 * k + (k @ k) / 6.0
+    theta = np.sqrt(theta2)
+    a = (1.0 - np.cos(theta)) / theta2
+    b = (theta - np.sin(theta)) / (theta2 * theta)
+    return np.eye(3) - a * k + b * (k @ k)
+
+
 def rotation_angle_rad(rotation: np.ndarray) -> float:
     """Angle (rad, in [0, pi]) of a 3x3 rotation matrix: the norm of its rotation vector.
 

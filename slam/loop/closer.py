@@ -223,6 +223,19 @@ class LoopStats:
     query_ms: list[float] = field(default_factory=list)
     verify_ms: list[float] = field(default_factory=list)
     covisibility_ms: list[float] = field(default_factory=list)
+    keyframe_cpu_ms: list[float] = field(default_factory=list)
+    """CPU time (the calling thread's) of each ``add_keyframe``: unlike the wall times above,
+    it does not grow when the worker waits for a core on a busy machine."""
+    cpu_s: dict[str, float] = field(default_factory=dict)
+    """CPU time (s, the calling thread's) per step: describe, query, verify, refine (patch),
+    pgo (request, optimisation, result), fusion and adjustment (the end of the run)."""
+
+    def add_cpu(self, step: str, since_s: float) -> float:
+        """Count the thread's CPU time since ``since_s`` (``time.thread_time()``) to ``step``;
+        returns the time now."""
+        now = time.thread_time()
+        self.cpu_s[step] = self.cpu_s.get(step, 0.0) + now - since_s
+        return now
 
     def summary(self) -> dict[str, object]:
         from slam.core.latency import latency_summary as pct
@@ -245,6 +258,8 @@ class LoopStats:
             "describe": pct(self.describe_ms),
             "query": pct(self.query_ms),
             "verify": pct(self.verify_ms),
+            "keyframe_cpu": pct(self.keyframe_cpu_ms),
+            "cpu_s": {k: round(v, 3) for k, v in sorted(self.cpu_s.items())},
         }
 
 
@@ -327,6 +342,9 @@ class LoopCloser:
         self.observations: dict[int, KeyframeObservations] = {}  # for the global adjustment
         self.global_ba: GlobalBaResult | None = None
         self.images: dict[int, np.ndarray] = {}  # left image per keyframe (patch refinement)
+        self._odometry_edge_cache: dict[int, tuple[np.ndarray, np.ndarray, PoseEdge]] = {}
+        """Per keyframe: its edge from the previous one, with the two poses it was made from
+        (held here, so an identity test tells whether either was replaced)."""
         self.exclude_from_adjustment: set[int] = set()
         """Keyframes left out of the global adjustment (set by the stage at the end: those the
         back end never smoothed, i.e. from before its initialisation)."""
@@ -363,6 +381,15 @@ class LoopCloser:
     def add_keyframe(self, kf: Keyframe, world_from_body_odom: np.ndarray) -> LoopEvent | None:
         """Describe, query, verify, gate; add the keyframe to the graph (and optimise inline
         when ``inline_pgo`` and a loop was accepted)."""
+        cpu0 = time.thread_time()
+        try:
+            return self._add_keyframe(kf, world_from_body_odom, cpu0)
+        finally:
+            self.stats.keyframe_cpu_ms.append((time.thread_time() - cpu0) * 1e3)
+
+    def _add_keyframe(
+        self, kf: Keyframe, world_from_body_odom: np.ndarray, cpu: float
+    ) -> LoopEvent | None:
         t0 = time.perf_counter()
         desc = describe_keyframe(
             kf,
@@ -374,6 +401,7 @@ class LoopCloser:
             self.orb,
         )
         self.stats.describe_ms.append((time.perf_counter() - t0) * 1e3)
+        cpu = self.stats.add_cpu("describe", cpu)
         self._add_node(kf, world_from_body_odom)
         self.store.add_description(desc, world_from_body_odom)
         if self.cfg.patch_refinement:
@@ -408,6 +436,7 @@ class LoopCloser:
         with self.store.lock:
             detection = self.detector.process(kf.keyframe_id, kf.t_ns, desc.bow, exclude=exclude)
         self.stats.query_ms.append((time.perf_counter() - t1) * 1e3)
+        cpu = self.stats.add_cpu("query", cpu)
         self.stats.keyframes += 1
         if detection is None:
             return None
@@ -419,8 +448,10 @@ class LoopCloser:
         ]
         event = self._verify_and_gate(kf, desc, candidates[: self.cfg.candidates_to_verify])
         if event.status == "accepted" and self.inline_pgo:
+            cpu = time.thread_time()
             outcome = run_pgo(self.pgo_request())
             correction = self.apply_pgo(outcome)
+            self.stats.add_cpu("pgo", cpu)
             event = LoopEvent(**{**event.__dict__, "correction": correction})
         return event
 
@@ -595,9 +626,10 @@ class LoopCloser:
         self, kf: Keyframe, desc: KeyframeDescription, candidates: list[int]
     ) -> LoopEvent:
         q = kf.keyframe_id
-        t0 = time.perf_counter()
+        t0, cpu = time.perf_counter(), time.thread_time()
         match, ver, method = self._verify(desc, candidates)
         self.stats.verify_ms.append((time.perf_counter() - t0) * 1e3)
+        cpu = self.stats.add_cpu("verify", cpu)
         if ver is None:
             self.stats.rejected_verification += 1
             return LoopEvent(kf.t_ns, q, candidates[0], "rejected", "verification failed", 0)
@@ -605,6 +637,7 @@ class LoopCloser:
         cand_from_query, information = ver.candidate_cam_from_query_cam, None
         if method == "landmarks" and self.cfg.patch_refinement:
             cand_from_query, information = self._refine_on_patches(kf, desc, match, ver)
+            self.stats.add_cpu("refine", cpu)
         measured = self.body_from_cam0 @ cand_from_query @ self.cam0_from_body
         pairs = None
         if method == "landmarks":
@@ -782,16 +815,27 @@ class LoopCloser:
         )
 
     def _odometry_edges(self, nodes: list[int]) -> list[PoseEdge]:
-        """Odometry edges between consecutive keyframes of a segment, among ``nodes``."""
+        """Odometry edges between consecutive keyframes of a segment, among ``nodes``.
+
+        Each edge is cached with the two odometry poses it was made from and made again only
+        when either was replaced (``update_odometry`` refreshes the newest few): built afresh
+        for every pose graph, they took ~30 ms of each optimisation on room-aggressive."""
         odo: list[PoseEdge] = []
         for k in nodes:
             prev = self.prev_in_segment.get(k)
             if prev is None:
                 continue
-            rel = invert_transform(self.odom[prev]) @ self.odom[k]
+            a, b = self.odom[prev], self.odom[k]
+            cached = self._odometry_edge_cache.get(k)
+            if cached is not None and cached[0] is a and cached[1] is b:
+                odo.append(cached[2])
+                continue
+            rel = invert_transform(a) @ b
             dt_s = (self.t_ns_of[k] - self.t_ns_of[prev]) * 1e-9
             sigma_m, sigma_rad = odometry_sigmas(rel, dt_s, self.cfg)
-            odo.append(PoseEdge(prev, k, rel, information_from_sigmas(sigma_m, sigma_rad)))
+            edge = PoseEdge(prev, k, rel, information_from_sigmas(sigma_m, sigma_rad))
+            self._odometry_edge_cache[k] = (a, b, edge)
+            odo.append(edge)
         return odo
 
     def _observations(self, kf: Keyframe) -> KeyframeObservations:
@@ -857,7 +901,7 @@ class LoopCloser:
             for a, b in r.landmark_pairs.tolist()
         ]
         c = self.cfg
-        t0 = time.perf_counter()
+        t0, cpu = time.perf_counter(), time.thread_time()
         budget_s = self.global_adjustment_budget_s(nodes)
         if budget_s is not None:
             budget_s = max(budget_s - spent_s, 0.0)
@@ -868,6 +912,7 @@ class LoopCloser:
             fusion_pairs = len({(qk, mk) for qk, _, mk, _ in found})
             pairs += found
         fusion_s = time.perf_counter() - t0
+        cpu = self.stats.add_cpu("fusion", cpu)
         if budget_s is not None:
             budget_s = max(budget_s - fusion_s, 0.0)
         result = global_bundle_adjustment(
@@ -885,6 +930,7 @@ class LoopCloser:
                 max_keyframes_per_landmark=c.global_ba_max_keyframes_per_landmark,
             ),
         )
+        self.stats.add_cpu("adjustment", cpu)
         if result is None:
             return None
         result = dataclasses.replace(

@@ -70,9 +70,9 @@ class GlobalBaParams:
     outlier_px: float = 3.0
     max_iterations: int = 15
     time_budget_s: float | None = None
-    """Stop iterating once the adjustment has run this long (from its start), keeping the
-    estimate so far (at least one iteration; the outlier round is then skipped). None: no
-    limit."""
+    """Stop iterating before an iteration that would end past this time from the adjustment's
+    start (judged by the last iteration's time), keeping the estimate so far (at least one
+    iteration; the outlier round is then skipped). None: no limit."""
     min_observations: int = 20
     """Every keyframe needs this many observations of kept landmarks, else there is no
     adjustment (None): a keyframe held only by its odometry edges could be dragged anywhere."""
@@ -162,7 +162,9 @@ def _fuse(ids: np.ndarray, pairs: Iterable[tuple[int, int]]) -> np.ndarray:
             parent[max(ra, rb)] = min(ra, rb)
     if not parent:
         return ids
-    return np.array([find(int(i)) for i in ids.tolist()], dtype=np.int64)
+    unique, inverse = np.unique(ids, return_inverse=True)  # one find per id, not per row
+    roots = np.array([find(int(i)) for i in unique.tolist()], dtype=np.int64)
+    return roots[inverse.reshape(-1)]
 
 
 def _project(
@@ -386,13 +388,21 @@ def global_bundle_adjustment(
     result = values
     deadline = None if p.time_budget_s is None else t0 + p.time_budget_s
     time_boxed = False
+    iteration_s: float | None = None
     for _ in range(2):  # solve; drop outliers; solve again
+        if (
+            deadline is not None
+            and iteration_s is not None
+            and time.perf_counter() + iteration_s > deadline
+        ):
+            time_boxed = True  # no time for an iteration of the second round
+            break
         optimizer = gtsam.LevenbergMarquardtOptimizer(build(mask_l, mask_r), result, lm_params)
         if deadline is None:
             result = optimizer.optimize()
             iterations += int(optimizer.iterations())
         else:
-            time_boxed = _iterate_until(optimizer, lm_params, deadline)
+            time_boxed, iteration_s = _iterate_until(optimizer, lm_params, deadline, iteration_s)
             result = optimizer.values()
             iterations += int(optimizer.iterations())
         e_l, e_r = errors(result, mask_l, mask_r)
@@ -422,12 +432,21 @@ def _iterate_until(
     optimizer: gtsam.LevenbergMarquardtOptimizer,
     params: gtsam.LevenbergMarquardtParams,
     deadline: float,
-) -> bool:
+    iteration_s: float | None = None,
+) -> tuple[bool, float | None]:
     """Levenberg-Marquardt iterations until convergence (GTSAM's own test), the iteration
-    limit or ``deadline`` (``time.perf_counter``); True when the deadline stopped it."""
+    limit or ``deadline`` (``time.perf_counter``). An iteration is not started when the last
+    one (``iteration_s`` before the first: an earlier round's) would end past the deadline:
+    one iteration of room-aggressive's adjustment takes 1-2 s, which a check after each
+    iteration added to the end of the run. Without an estimate at least one iteration runs.
+    Returns (True when the deadline stopped it, the last iteration's time)."""
     error = optimizer.error()
     for _ in range(params.getMaxIterations()):
+        start = time.perf_counter()
+        if iteration_s is not None and start + iteration_s > deadline:
+            return True, iteration_s
         optimizer.iterate()
+        iteration_s = time.perf_counter() - start
         new_error = optimizer.error()
         if gtsam.checkConvergence(
             params.getRelativeErrorTol(),
@@ -436,11 +455,9 @@ def _iterate_until(
             error,
             new_error,
         ):
-            return False
+            return False, iteration_s
         error = new_error
-        if time.perf_counter() > deadline:
-            return True
-    return False
+    return False, iteration_s
 
 
 __all__ = [

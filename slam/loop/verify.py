@@ -11,13 +11,14 @@ then ``F_from_query_cam``).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from slam.core.calibration import CameraIntrinsics
-from slam.core.geometry import invert_transform, make_transform
+from slam.core.geometry import invert_transform, make_transform, so3_exp, so3_right_jacobian
 
 
 @dataclass(frozen=True)
@@ -157,6 +158,41 @@ def _project(points: np.ndarray, k: np.ndarray) -> np.ndarray:
     return points[:, :2] / points[:, 2:3] * [k[0, 0], k[1, 1]] + [k[0, 2], k[1, 2]]
 
 
+def _project_jacobian(points: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """d pixel / d point (N, 2, 3) of :func:`_project` at ``points`` (N, 3)."""
+    inv_z = 1.0 / points[:, 2]
+    out = np.zeros((len(points), 2, 3))
+    out[:, 0, 0] = k[0, 0] * inv_z
+    out[:, 0, 2] = -k[0, 0] * points[:, 0] * inv_z**2
+    out[:, 1, 1] = k[1, 1] * inv_z
+    out[:, 1, 2] = -k[1, 1] * points[:, 1] * inv_z**2
+    return out
+
+
+def _skew_batch(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices (N, 3, 3) of vectors (N, 3)."""
+    out = np.zeros((len(v), 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    return out
+
+
+def _two_way_jacobian(
+    k: np.ndarray,
+    a_in_q: np.ndarray,
+    d_a: np.ndarray,
+    b_in_c: np.ndarray,
+    d_b: np.ndarray,
+) -> np.ndarray:
+    """Jacobian (2 N_a + 2 N_b, 6) of two-way reprojection residuals (rows as the residuals:
+    the ``a`` points' pixels, then the ``b`` points'), from the points in the camera they
+    project into, ``a_in_q`` (N_a, 3) and ``b_in_c`` (N_b, 3), and their derivatives by the
+    six parameters, ``d_a`` (N_a, 3, 6) and ``d_b`` (N_b, 3, 6)."""
+    j_a = _project_jacobian(a_in_q, k) @ d_a
+    j_b = _project_jacobian(b_in_c, k) @ d_b
+    return np.concatenate([j_a.reshape(-1, 6), j_b.reshape(-1, 6)])
+
+
 def refine_symmetric(
     candidate_cam_from_query_cam: np.ndarray,
     candidate_points: np.ndarray,
@@ -173,7 +209,6 @@ def refine_symmetric(
     they grow with depth squared) are balanced by the other's. Rows of ``query_points`` that
     are NaN only contribute the first direction. Returns ``candidate_cam_from_query_cam``.
     """
-    from scipy.optimize import least_squares
     from scipy.spatial.transform import Rotation
 
     k = np.asarray(camera_matrix, dtype=np.float64)
@@ -187,7 +222,7 @@ def refine_symmetric(
     x0 = np.concatenate([Rotation.from_matrix(t0[:3, :3]).as_rotvec(), t0[:3, 3]])
 
     def residuals(x: np.ndarray) -> np.ndarray:
-        rot = Rotation.from_rotvec(x[:3]).as_matrix()
+        rot = so3_exp(x[:3])
         t = x[3:]
         pc_in_q = (pc - t) @ rot  # rot^T (pc - t): candidate points in the query camera
         pq_in_c = pq @ rot.T + t
@@ -195,10 +230,77 @@ def refine_symmetric(
         r2 = _project(pq_in_c, k) - uc
         return np.concatenate([r1.ravel(), r2.ravel()])
 
-    sol = least_squares(residuals, x0, loss="huber", f_scale=huber_px, x_scale="jac")
-    if not sol.success or not np.all(np.isfinite(sol.x)):
+    def jacobian(x: np.ndarray) -> np.ndarray:
+        rot, jr = so3_exp(x[:3]), so3_right_jacobian(x[:3])
+        t = x[3:]
+        pc_in_q = (pc - t) @ rot
+        d_a = np.empty((len(pc), 3, 6))
+        d_a[:, :, :3] = _skew_batch(pc_in_q) @ jr
+        d_a[:, :, 3:] = -rot.T
+        d_b = np.empty((len(pq), 3, 6))
+        d_b[:, :, :3] = -(rot @ _skew_batch(pq)) @ jr
+        d_b[:, :, 3:] = np.eye(3)
+        return _two_way_jacobian(k, pc_in_q, d_a, pq @ rot.T + t, d_b)
+
+    x = _huber_gauss_newton(residuals, jacobian, x0, huber_px)
+    if x is None:
         return t0
-    return make_transform(Rotation.from_rotvec(sol.x[:3]).as_matrix(), sol.x[3:])
+    return make_transform(so3_exp(x[:3]), x[3:])
+
+
+def _huber_gauss_newton(
+    residuals: Callable[[np.ndarray], np.ndarray],
+    jacobian: Callable[[np.ndarray], np.ndarray],
+    x0: np.ndarray,
+    huber_px: float,
+    max_iterations: int = 30,
+) -> np.ndarray | None:
+    """Minimise the Huber cost (threshold ``huber_px`` per residual) by iteratively reweighted
+    Gauss-Newton with step halving; None when it meets a non-finite value.
+
+    Why not ``scipy.optimize.least_squares`` (same cost): its set-up and trust-region
+    bookkeeping took ~3.5 ms per call on these 6-parameter problems (with the analytic
+    Jacobian), and the end-of-run fusion search calls it for every keyframe pair it
+    matches (BENCHMARKS.md, "Loop worker CPU")."""
+
+    def cost(r: np.ndarray) -> float:
+        a = np.abs(r)
+        return float(np.sum(np.where(a <= huber_px, 0.5 * a * a, huber_px * (a - 0.5 * huber_px))))
+
+    x = np.asarray(x0, dtype=np.float64).copy()
+    r = residuals(x)
+    current = cost(r)
+    if not np.isfinite(current):
+        return None
+    for _ in range(max_iterations):
+        jac = jacobian(x)
+        a = np.abs(r)
+        w = np.where(a <= huber_px, 1.0, huber_px / np.maximum(a, 1e-300))
+        hessian = jac.T @ (w[:, None] * jac)
+        try:
+            step = -np.linalg.solve(hessian, jac.T @ (w * r))
+        except np.linalg.LinAlgError:
+            break
+        if not np.all(np.isfinite(step)):
+            return None
+        scale = 1.0
+        while scale > 1e-3:
+            trial = x + scale * step
+            r_trial = residuals(trial)
+            c_trial = cost(r_trial)
+            if np.isfinite(c_trial) and c_trial <= current:
+                break
+            scale *= 0.5
+        else:
+            break  # no descent along the step: converged (or stuck)
+        # scipy's default tolerances (ftol, xtol 1e-8)
+        decrease = current - c_trial
+        x, r, current = trial, r_trial, c_trial
+        if decrease <= 1e-8 * current or np.linalg.norm(scale * step) <= 1e-8 * (
+            1.0 + np.linalg.norm(x)
+        ):
+            break
+    return x
 
 
 def verify_loop_landmarks(
@@ -428,12 +530,33 @@ def refine_on_patches(
         r2 = _project(b_pts[b_keep] @ rot.T + t, k) - b_px[b_keep]
         return np.concatenate([r1.ravel(), r2.ravel()])
 
+    def jacobian(delta: np.ndarray, a_keep: np.ndarray, b_keep: np.ndarray) -> np.ndarray:
+        # analytic (columns: translation, rotation): rot = R0 exp(w), t = R0 dt + t0
+        pose = _se3_right(pose0, delta)
+        rot, t = pose[:3, :3], pose[:3, 3]
+        jr = so3_right_jacobian(delta[3:])
+        a, b = a_pts[a_keep], b_pts[b_keep]
+        a_in_q = (a - t) @ rot
+        d_a = np.empty((len(a), 3, 6))
+        d_a[:, :, :3] = -(pose0[:3, :3].T @ rot).T  # -exp(w)^T
+        d_a[:, :, 3:] = _skew_batch(a_in_q) @ jr
+        d_b = np.empty((len(b), 3, 6))
+        d_b[:, :, :3] = pose0[:3, :3]
+        d_b[:, :, 3:] = -(rot @ _skew_batch(b)) @ jr
+        return _two_way_jacobian(k, a_in_q, d_a, b @ rot.T + t, d_b)
+
     a_keep = np.ones(len(a_pts), bool)
     b_keep = np.ones(len(b_pts), bool)
     x = np.zeros(6)
     for _ in range(2):
         sol = least_squares(
-            residuals, x, args=(a_keep, b_keep), loss="huber", f_scale=huber_px, x_scale="jac"
+            residuals,
+            x,
+            jac=jacobian,
+            args=(a_keep, b_keep),
+            loss="huber",
+            f_scale=huber_px,
+            x_scale="jac",
         )
         if not np.all(np.isfinite(sol.x)):
             return None
@@ -446,7 +569,9 @@ def refine_on_patches(
         b_keep = norm[len(a_pts) :] < limit
         if a_keep.sum() + b_keep.sum() < min_landmarks:
             return None
-    sol = least_squares(residuals, x, args=(a_keep, b_keep), loss="linear", x_scale="jac")
+    sol = least_squares(
+        residuals, x, jac=jacobian, args=(a_keep, b_keep), loss="linear", x_scale="jac"
+    )
     x = sol.x
     r = sol.fun
     dof = max(len(r) - 6, 1)
