@@ -2,10 +2,10 @@
 
 ``ru_maxrss`` gives one process's peak only (and ``RUSAGE_CHILDREN`` only children that have
 ended and been waited for), so a sampler thread reads the tree's resident sizes every
-``period_s`` from ``/proc`` (``_tree_pids``; psutil where that is missing): each process's own peak comes from the kernel (``VmHWM``, exact),
-the total at its peak from the samples (the tree's sum can peak between two samples). Resident
-sizes count pages shared between processes (the reader's image ring, a worker just forked) in
-each of them.
+``period_s`` from ``/proc`` (``_tree_pids``; psutil where that is missing): each process's own
+peak comes from the kernel (``VmHWM``, exact), the total at its peak from the samples (the
+tree's sum can peak between two samples). Resident sizes count pages shared between processes
+(the reader's image ring, a worker just forked) in each of them.
 """
 
 from __future__ import annotations

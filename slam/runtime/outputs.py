@@ -54,7 +54,7 @@ class RunOutputs:
 
     The text of a trajectory's rows that are the same as at the last write (its first rows: the
     live and odometry trajectories only grow) is reused rather than formatted again: formatting
-    every row took 50-150 ms of Python per write on the hall's 2,800 frames, in the player's
+    every row took 45-185 ms of Python per write on the hall's 2,800 frames, in the player's
     thread, and every millisecond of it the front end's thread waits for the GIL at each of its
     OpenCV calls. The files are the same as :func:`slam.evaluation.io.write_tum` and
     ``write_euroc_csv`` write. ``config_yaml`` does not change during a run: written once."""
