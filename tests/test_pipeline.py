@@ -52,6 +52,8 @@ def test_sequential_is_bit_identical_and_agrees_with_concurrent(short_seq, tmp_p
     if sys.platform.startswith("linux"):
         rq = lat["frontend_frame_runqueue"]
         assert rq["count"] == n and rq["max_ms"] >= 0
+        gil = lat["frontend_frame_gil"]  # the rest of the wait
+        assert gil["count"] == n and 0 <= gil["p50_ms"] <= lat["frontend_frame_wait"]["p50_ms"]
 
 
 def test_vo_accuracy_on_short_synthetic(short_seq):

@@ -745,15 +745,27 @@ def ns_to_seconds_str(t_ns: int) -> str:
 
 def _text(comment: str, times: list[str], values: np.ndarray, sep: str) -> str:
     """The comment line, then one line per row: the time, then the values (lossless ``repr``)."""
-    rows = [t + sep + sep.join(map(repr, v)) for t, v in zip(times, values.tolist())]
-    return "\n".join([comment, *rows]) + "\n"
+    return "\n".join([comment, *text_rows(times, values, sep)]) + "\n"
+
+
+def text_rows(times: list[str], values: np.ndarray, sep: str) -> list[str]:
+    """One line per row (no newline): the time, then the values (lossless ``repr``)."""
+    return [t + sep + sep.join(map(repr, v)) for t, v in zip(times, values.tolist())]
+
+
+def tum_values(traj: Trajectory) -> np.ndarray:
+    """The (N, 7) values of a TUM file's rows: ``x y z qx qy qz qw`` (TUM stores x,y,z,w)."""
+    return np.hstack([traj.positions_m, traj.q_wxyz[:, [1, 2, 3, 0]]])
+
+
+def tum_times(t_ns: np.ndarray) -> list[str]:
+    """A TUM file's times: seconds, exact from the integer ns."""
+    return [ns_to_seconds_str(t) for t in t_ns.tolist()]
 
 
 def tum_text(traj: Trajectory, header: str = TUM_HEADER) -> str:
     """TUM text: ``t x y z qx qy qz qw``, t in seconds (exact from ns); ``header`` after a '#'."""
-    values = np.hstack([traj.positions_m, traj.q_wxyz[:, [1, 2, 3, 0]]])  # TUM stores x,y,z,w
-    times = [ns_to_seconds_str(t) for t in traj.t_ns.tolist()]
-    return _text(f"# {header}", times, values, " ")
+    return _text(f"# {header}", tum_times(traj.t_ns), tum_values(traj), " ")
 
 
 def write_tum(path: str | Path, traj: Trajectory, header: str = TUM_HEADER) -> None:
@@ -763,8 +775,17 @@ def write_tum(path: str | Path, traj: Trajectory, header: str = TUM_HEADER) -> N
 
 def euroc_csv_text(traj: Trajectory) -> str:
     """EuRoC csv in the ground-truth column names: ``t_ns,px,py,pz,qw,qx,qy,qz``."""
-    values = np.hstack([traj.positions_m, traj.q_wxyz])
-    return _text(f"#{EUROC_HEADER}", [str(t) for t in traj.t_ns.tolist()], values, ",")
+    return _text(f"#{EUROC_HEADER}", euroc_times(traj.t_ns), euroc_values(traj), ",")
+
+
+def euroc_values(traj: Trajectory) -> np.ndarray:
+    """The (N, 7) values of a EuRoC csv's rows: ``px py pz qw qx qy qz``."""
+    return np.hstack([traj.positions_m, traj.q_wxyz])
+
+
+def euroc_times(t_ns: np.ndarray) -> list[str]:
+    """A EuRoC csv's times: integer ns."""
+    return [str(t) for t in t_ns.tolist()]
 
 
 def write_euroc_csv(path: str | Path, traj: Trajectory) -> None:

@@ -2,33 +2,56 @@
 
 ``ru_maxrss`` gives one process's peak only (and ``RUSAGE_CHILDREN`` only children that have
 ended and been waited for), so a sampler thread reads the tree's resident sizes every
-``period_s`` with psutil: each process's own peak comes from the kernel (``VmHWM``, exact),
-the total at its peak from the samples (the tree's sum can peak between two samples). Resident
-sizes count pages shared between processes (the reader's image ring, a worker just forked) in
-each of them.
+``period_s`` from ``/proc`` (``_tree_pids``; psutil where that is missing): each process's own
+peak comes from the kernel (``VmHWM``, exact), the total at its peak from the samples (the
+tree's sum can peak between two samples). Resident sizes count pages shared between processes
+(the reader's image ring, a worker just forked) in each of them.
 """
 
 from __future__ import annotations
 
+import os
 import threading
 from typing import Any
 
 import psutil
 
 
-def _peak_mb(proc: psutil.Process) -> float | None:
-    """The kernel's peak resident size of ``proc`` (Linux VmHWM), else its current one."""
+def _status(pid: int) -> tuple[str, float, float] | None:
+    """(name, resident MB, the kernel's peak resident MB ``VmHWM``) of process ``pid`` from
+    ``/proc/PID/status``; None when it has ended (or this is not Linux)."""
     try:
-        with open(f"/proc/{proc.pid}/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024.0  # kB
-    except OSError:
-        pass
-    try:
-        return float(proc.memory_info().rss) / 2**20
-    except psutil.Error:
+        with open(f"/proc/{pid}/status") as f:
+            fields = dict(line.split(":", 1) for line in f if ":" in line)
+        rss = int(fields["VmRSS"].split()[0]) / 1024.0  # kB
+        return fields["Name"].strip(), rss, int(fields["VmHWM"].split()[0]) / 1024.0
+    except (OSError, KeyError, ValueError, IndexError):
         return None
+
+
+def _tree_pids(root: int) -> list[int] | None:
+    """``root`` and its descendants from ``/proc/PID/task/TID/children``: a few files of the
+    tree's own. psutil's ``children()`` reads the status of every process on the machine, in
+    Python: ~2-5 ms per sample on a shared machine, holding the GIL that the front end's thread
+    needs back after each of its OpenCV calls. None without those files (a kernel without
+    ``CONFIG_PROC_CHILDREN``, not Linux)."""
+    if not os.path.exists(f"/proc/{root}/task/{root}/children"):
+        return None
+    pids, todo = [], [root]
+    while todo:
+        pid = todo.pop()
+        pids.append(pid)
+        try:
+            tasks = os.listdir(f"/proc/{pid}/task")
+        except OSError:
+            continue  # ended
+        for task in tasks:
+            try:
+                with open(f"/proc/{pid}/task/{task}/children") as f:
+                    todo.extend(int(c) for c in f.read().split())
+            except OSError:
+                continue  # the thread or process ended
+    return pids
 
 
 class TreeMemory:
@@ -52,24 +75,26 @@ class TreeMemory:
             self.sample()
 
     def sample(self) -> None:
-        try:
-            procs = [self._root, *self._root.children(recursive=True)]
-        except psutil.Error:
-            return
-        total = 0.0
-        for proc in procs:
+        pids = _tree_pids(self._root.pid)
+        if pids is None:
             try:
-                rss_mb = proc.memory_info().rss / 2**20
-                name = proc.name() if proc is not self._root else "main"
+                pids = [self._root.pid, *(c.pid for c in self._root.children(recursive=True))]
             except psutil.Error:
+                return
+        total = 0.0
+        for pid in pids:
+            status = _status(pid)
+            if status is None:
                 continue
+            name, rss_mb, peak_mb = status
+            name = "main" if pid == self._root.pid else name
             total += rss_mb
-            peak = max(_peak_mb(proc) or 0.0, rss_mb)
+            peak = max(peak_mb, rss_mb)
             with self._lock:
-                _, before = self.peak_by_process.get(proc.pid, (name, 0.0))
+                _, before = self.peak_by_process.get(pid, (name, 0.0))
                 # max over samples too: a spawned worker's peak restarts at its exec, while
                 # its sample just before (the forked copy of this process) counted in a total
-                self.peak_by_process[proc.pid] = (name, max(peak, before))
+                self.peak_by_process[pid] = (name, max(peak, before))
         with self._lock:
             self.total_peak_mb = max(self.total_peak_mb, total)
 

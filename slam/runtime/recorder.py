@@ -32,6 +32,7 @@ class Recorder:
         self.frontend_latency_ms: list[float] = []
         self.frontend_cpu_ms: list[float] = []
         self.frontend_runqueue_ms: list[float] = []  # empty where the OS does not report it
+        self.frontend_gil_ms: list[float] = []  # latency - CPU - run queue, where reported
         self.states: dict[str, int] = {}
         self.last_state = ""
         self.keyframe_times: dict[int, int] = {}
@@ -65,6 +66,7 @@ class Recorder:
             self.frontend_cpu_ms.append(res.cpu_ms)
             if res.runqueue_ms >= 0:
                 self.frontend_runqueue_ms.append(res.runqueue_ms)
+                self.frontend_gil_ms.append(max(res.latency_ms - res.cpu_ms - res.runqueue_ms, 0.0))
             self.states[res.state] = self.states.get(res.state, 0) + 1
             self.last_state = res.state
             if res.world_from_body is not None:
@@ -117,18 +119,20 @@ class Recorder:
 
     def frontend_breakdown(self) -> dict[str, dict[str, float]]:
         """Latency summaries of the front end's CPU time, wait (latency - CPU) and, of that
-        wait, run-queue time (runnable without a CPU); the rest of the wait is the GIL or
-        sleeping (``slam.cputime``)."""
+        wait, run-queue time (runnable without a CPU) and the rest: waiting for the GIL (or
+        sleeping, ``slam.cputime``), ``frontend_frame_gil``."""
         with self._lock:
             lat = np.asarray(self.frontend_latency_ms)
             cpu = np.asarray(self.frontend_cpu_ms)
             rq = list(self.frontend_runqueue_ms)
+            gil = list(self.frontend_gil_ms)
         out = {
             "frontend_frame_cpu": latency_summary(cpu.tolist()),
             "frontend_frame_wait": latency_summary(np.maximum(lat - cpu, 0.0).tolist()),
         }
         if rq:
             out["frontend_frame_runqueue"] = latency_summary(rq)
+            out["frontend_frame_gil"] = latency_summary(gil)
         return out
 
     def frontend_latencies_ms(self) -> list[float]:

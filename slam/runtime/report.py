@@ -27,7 +27,7 @@ from slam.runtime.end_of_run import (
     loop_closed_trajectory,
 )
 from slam.runtime.memory import TreeMemory
-from slam.runtime.outputs import write_run_outputs
+from slam.runtime.outputs import RunOutputs
 from slam.runtime.player import PlayState, real_time_factor
 from slam.runtime.stage import Stage, StageError
 from slam.runtime.viewer import ViewerSession
@@ -104,6 +104,7 @@ class Run:
     memory: TreeMemory
     state: PlayState = field(default_factory=PlayState)
     times: RunTimes = field(default_factory=lambda: RunTimes(t_wall0=time.perf_counter()))
+    _outputs: RunOutputs | None = field(default=None, init=False, repr=False)
 
     def stats(self, error: StageError | None) -> dict[str, Any]:
         """stats.json as of now."""
@@ -184,7 +185,9 @@ class Run:
         if closed is not None:
             extra["trajectory_loop_closed"] = closed
         live = self.p.recorder.live()
-        write_run_outputs(self.out_dir, live, kfs, stats, config_to_yaml(self.cfg), extra)
+        if self._outputs is None:
+            self._outputs = RunOutputs(self.out_dir, config_to_yaml(self.cfg))
+        self._outputs.write(live, kfs, stats, extra)
 
     def flush(self) -> None:
         """The outputs for what has been processed so far (every few seconds of a run)."""
