@@ -101,6 +101,14 @@ def test_still_rig_gives_no_offset(aggressive) -> None:
     assert est.state().status != "applied"
 
 
+def test_motion_is_seen_at_its_start(aggressive) -> None:
+    """The back end holds its keyframes from the first hint of motion (``moving``): still
+    through 1.9 s (visual jitter only), moving before 2.5 s (the motion starts at 2 s and
+    turns at 0.2 rad/s only from ~2.3 s; keyframes fused before were the damage at +20 ms)."""
+    assert not _feed(aggressive, 20_000_000, BackendConfig(), until_s=1.9).moving
+    assert _feed(aggressive, 20_000_000, BackendConfig(), until_s=2.5).moving
+
+
 def _frame(t_ns: int) -> StereoFrame:
     return StereoFrame(t_ns, np.zeros((2, 2), np.uint8), None)
 
@@ -120,3 +128,38 @@ def test_restamped_frames_wait_for_their_imu() -> None:
                      (25, False), (27, True)]  # fmt: skip
     early = list(restamped(iter(msgs), lambda: -4))
     assert [m.t_ns for m in early if isinstance(m, StereoFrame)] == [1, 16]
+
+
+def test_outputs_restamp_frames_from_before_the_offset_was_known() -> None:
+    """Rows recorded with camera stamps (before the offset was applied) move into the IMU
+    clock by the final offset; rows already in it and the poses stay as they are."""
+    from slam.core.messages import TrackingResult
+    from slam.runtime.recorder import Recorder
+
+    rec = Recorder(0)
+    offset_ns = 20_000_000
+    for k in range(6):
+        applied = offset_ns if k >= 3 else 0  # the offset known from the 4th frame on
+        pose = np.eye(4)
+        pose[0, 3] = float(k)
+        rec.put(
+            TrackingResult(
+                t_ns=k * 50_000_000 + applied,
+                frame_index=k,
+                state="tracking",
+                segment_id=0,
+                world_from_body=pose,
+                is_keyframe=False,
+                keyframe_id=-1,
+                num_tracked=0,
+                num_inliers=0,
+                feature_pixels=np.zeros((0, 2)),
+                feature_ages=np.zeros(0),
+                latency_ms=1.0,
+                time_offset_ns=applied,
+            )
+        )
+    live = rec.in_imu_clock(rec.live(), offset_ns)
+    np.testing.assert_array_equal(live.t_ns, np.arange(6) * 50_000_000 + offset_ns)
+    np.testing.assert_array_equal(live.positions_m[:, 0], np.arange(6.0))
+    assert rec.in_imu_clock(rec.live(), 0).t_ns[0] == 0  # no offset: untouched

@@ -147,11 +147,13 @@ class BackendConfig:
     """The estimate is applied once its standard deviation is below this."""
     time_offset_min_pairs: int = bounded(8, ge=3)
     """Keyframe pairs needed before estimating."""
-    time_offset_hold_s: float = bounded(0.0, ge=0)
+    time_offset_hold_s: float = bounded(1.5, ge=0)
     """Once initialised and moving, keyframes wait (the front end runs on alone) until the offset
-    is known, at most this long per run; then they are fused in the IMU clock. 0 (default):
-    never wait. 3 s measured better at 20-30 ms offsets (BENCHMARKS.md), but an interrupted run
-    then loses the held keyframes' smoothed poses (keyframes.tum), so it is off for now."""
+    is known, at most this long per run; then they are fused in the IMU clock. Fast motion
+    knows it within ~1 s (BENCHMARKS.md: then the ATE at +-20 ms is that of a zero-offset
+    run); slow motion may not, and 3 s of the front end alone cost room-figure8 1.5 mm of live
+    ATE. 0: never wait. A run interrupted while keyframes wait has no smoothed poses for them
+    (keyframes.tum)."""
 
     # --- divergence checks ----------------------------------------------------------------------
     max_velocity_m_s: float = bounded(20.0, gt=0)

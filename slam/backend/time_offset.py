@@ -42,7 +42,11 @@ _H_S = 1e-3  # numeric derivative step in d
 _GRID_S = 1e-3  # grid step of the initial search
 _BIAS_PRIOR_RAD_S = 0.1
 _MIN_NOISE_RAD = 1e-5
-_MOVING_RAD_S = 0.2
+# A pair turning faster than this starts the back end's hold (``time_offset_hold_s``): the
+# first hint of motion, well above a still rig's visual jitter (~1 mrad/s). 0.2 rad/s let the
+# keyframes of the motion's first 0.3 s in with camera stamps: at +20 ms live ATE 1.29 vs 0.36 cm
+# with 0.05 (BENCHMARKS.md, 2026-12-02, time offset from the motion's start).
+_MOVING_RAD_S = 0.05
 
 
 def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -172,6 +172,7 @@ class TrackingResult:
     """While tracked against old landmarks found again in the map: the keyframe most of them
     were born at (-1: none)."""
     feature_reobserved: np.ndarray | None = None  # (N,) bool over feature_pixels: found again
+    time_offset_ns: int = 0  # its frame's camera-IMU offset: t_ns minus this is the camera's stamp
 
 
 @dataclass(frozen=True)

@@ -286,6 +286,7 @@ class FrontEnd:
             t_ns=frame.t_ns,
             frame_index=frame.index,
             state=state,
+            time_offset_ns=frame.time_offset_ns,
             segment_id=self.segment_id,
             world_from_body=None if pose is None else pose.copy(),
             is_keyframe=kw.pop("is_keyframe", False),

@@ -38,6 +38,7 @@ class Recorder:
         self.keyframe_times: dict[int, int] = {}
         self.events: list[tuple[int, str]] = []
         self.initialised_after_s: float | None = None
+        self.camera_stamped: set[int] = set()  # frames stamped before the time offset was known
 
     # -- consumer ------------------------------------------------------------------------------
     def put(self, msg: Any, block: bool = True) -> bool:
@@ -70,6 +71,8 @@ class Recorder:
             self.states[res.state] = self.states.get(res.state, 0) + 1
             self.last_state = res.state
             if res.world_from_body is not None:
+                if res.time_offset_ns == 0:
+                    self.camera_stamped.add(res.t_ns)
                 self.poses.append((res.t_ns, res.world_from_body))
                 live = res.map_from_body if res.map_from_body is not None else res.world_from_body
                 self.map_poses.append((res.t_ns, live))
@@ -151,6 +154,26 @@ class Recorder:
         with self._lock:
             poses = list(self.map_poses)
         return trajectory_from_poses(poses)
+
+    def in_imu_clock(self, traj: Trajectory, offset_ns: int) -> Trajectory:
+        """``traj`` with the frames stamped before the back end knew the camera-IMU offset
+        (camera stamps) moved into the IMU clock by ``offset_ns`` (the offset known at the end):
+        every output row then says when, in the IMU's clock, its image was taken. Poses are
+        not touched; a row that would no longer be after its predecessor is left out."""
+        if offset_ns == 0 or len(traj) == 0:
+            return traj
+        with self._lock:
+            early = np.array(sorted(self.camera_stamped), dtype=np.int64)
+        t_ns = np.asarray(traj.t_ns, np.int64)
+        t_new = np.where(np.isin(t_ns, early), t_ns + int(offset_ns), t_ns)
+        keep = np.ones(len(t_new), bool)
+        last = None
+        for i, t in enumerate(t_new.tolist()):
+            if last is not None and t <= last:
+                keep[i] = False
+            else:
+                last = t
+        return Trajectory(t_new[keep], traj.positions_m[keep], traj.q_wxyz[keep])
 
     def map_jump_summary(self) -> dict[str, Any]:
         """The loop corrections' jumps of the live pose (stats.json ``live_map_corrections``)."""

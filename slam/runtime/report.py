@@ -181,13 +181,22 @@ class Run:
         ``trajectory_odometry.tum`` the odometry ``traj``."""
         if self.out_dir is None:
             return
+        rec, offset_ns = self.p.recorder, self._time_offset_ns()
+        traj, kfs = rec.in_imu_clock(traj, offset_ns), rec.in_imu_clock(kfs, offset_ns)
         extra = {"trajectory_odometry": traj}
         if closed is not None:
-            extra["trajectory_loop_closed"] = closed
-        live = self.p.recorder.live()
+            extra["trajectory_loop_closed"] = rec.in_imu_clock(closed, offset_ns)
+        live = rec.in_imu_clock(rec.live(), offset_ns)
         if self._outputs is None:
             self._outputs = RunOutputs(self.out_dir, config_to_yaml(self.cfg))
         self._outputs.write(live, kfs, stats, extra)
+
+    def _time_offset_ns(self) -> int:
+        """The camera-IMU offset the back end applies (0: none, or not estimated online)."""
+        backend = self.p.backend
+        if backend is None or not self.cfg.backend.time_offset_online:
+            return 0
+        return backend.time_offset_ns()
 
     def flush(self) -> None:
         """The outputs for what has been processed so far (every few seconds of a run)."""
