@@ -147,13 +147,15 @@ class BackendConfig:
     """The estimate is applied once its standard deviation is below this."""
     time_offset_min_pairs: int = bounded(8, ge=3)
     """Keyframe pairs needed before estimating."""
-    time_offset_hold_s: float = bounded(1.5, ge=0)
+    time_offset_hold_s: float = bounded(0.0, ge=0)
     """Once initialised and moving, keyframes wait (the front end runs on alone) until the offset
-    is known, at most this long per run; then they are fused in the IMU clock. Fast motion
-    knows it within ~1 s (BENCHMARKS.md: then the ATE at +-20 ms is that of a zero-offset
-    run); slow motion may not, and 3 s of the front end alone cost room-figure8 1.5 mm of live
-    ATE. 0: never wait. A run interrupted while keyframes wait has no smoothed poses for them
-    (keyframes.tum)."""
+    is known, at most this long per run; then they are fused in the IMU clock. 0 (default):
+    never wait. 1.5 s takes the ATE at +-20 ms to that of a zero-offset run on fast motion
+    (BENCHMARKS.md, "the early trajectory kept"); slow motion may not know the offset within
+    it. Off by default: with it on, sequential runs of room-aggressive are not the same run to
+    run (not found why; BENCHMARKS.md, fifth session), it cost room-aggressive 0.55 mm of
+    sequential live ATE at zero offset, and a run interrupted while keyframes wait has no
+    smoothed poses for them (keyframes.tum)."""
 
     # --- divergence checks ----------------------------------------------------------------------
     max_velocity_m_s: float = bounded(20.0, gt=0)
