@@ -390,7 +390,14 @@ def _validate(obj: Any, where: str) -> None:
         if dataclasses.is_dataclass(value) and not isinstance(value, type):
             _validate(value, f"{key}.")
             continue
-        kind, optional = _numeric_kind(hints.get(f.name))
+        hint_of = hints.get(f.name)
+        if typing.get_origin(hint_of) is typing.Literal:
+            choices = typing.get_args(hint_of)
+            if value not in choices:
+                shown = ", ".join(map(str, choices))
+                raise SlamError(f"config key {key} must be one of {shown}, got {value!r}")
+            continue
+        kind, optional = _numeric_kind(hint_of)
         if kind is None or (optional and value is None):
             continue
         bounds = field_bounds(f)

@@ -175,6 +175,14 @@ def _load_error(tmp_path: Path, text: str) -> str:
             "got 15",
         ),
         (
+            "loop:\n  covisibility_edges: bogus\n",
+            "config key loop.covisibility_edges must be one of off, found, tracked, got 'bogus'",
+        ),
+        (
+            "loop:\n  live_correction: latests\n",
+            "config key loop.live_correction must be one of unanchored, latest, got 'latests'",
+        ),
+        (
             "frontend:\n  affine_iterations: 0\n",
             "config key frontend.affine_iterations must be in [1, inf), got 0 "
             "(switch refinement off with frontend.affine_refinement: false)",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 from slam.core.bounds import bounded
 
@@ -87,7 +88,7 @@ class LoopClosureConfig:
     ``patch_max_change_deg``) is discarded (the descriptor pose stays)."""
     patch_max_change_deg: float = bounded(1.0, gt=0, le=180)
     """See ``patch_max_change_m``."""
-    covisibility_edges: str = "off"
+    covisibility_edges: Literal["off", "found", "tracked"] = "off"
     """Pose-graph edges between keyframes that share landmarks across a gap: from a keyframe
     to the older keyframe that first saw the largest number of its landmarks, fitted on
     patches from the odometry's relative pose (needs ``patch_refinement``), so that a loop
@@ -100,7 +101,7 @@ class LoopClosureConfig:
     """... when it sees at least this many landmarks that keyframe first saw ..."""
     covisibility_min_gap_s: float = bounded(3.0, ge=0)
     """... and that keyframe is at least this much older (another pass)."""
-    live_correction: str = "latest"
+    live_correction: Literal["unanchored", "latest"] = "latest"
     """The loop correction the live pose (``trajectory.tum``) is published under: its
     segment's latest (``map_from_odom``) for every frame (``latest``), or for frames not
     tracked on old landmarks only (``unanchored``: those get their odometry, which map reuse
