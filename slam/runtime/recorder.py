@@ -166,13 +166,10 @@ class Recorder:
             early = np.array(sorted(self.camera_stamped), dtype=np.int64)
         t_ns = np.asarray(traj.t_ns, np.int64)
         t_new = np.where(np.isin(t_ns, early), t_ns + int(offset_ns), t_ns)
-        keep = np.ones(len(t_new), bool)
-        last = None
-        for i, t in enumerate(t_new.tolist()):
-            if last is not None and t <= last:
-                keep[i] = False
-            else:
-                last = t
+        # a row is kept when it is after every row before it (a left-out row is never after
+        # the last kept one, so the running maximum of all rows is that of the kept ones)
+        before = np.maximum.accumulate(t_new)[:-1]
+        keep = np.concatenate([[True], t_new[1:] > before])
         return Trajectory(t_new[keep], traj.positions_m[keep], traj.q_wxyz[keep])
 
     def map_jump_summary(self) -> dict[str, Any]:
