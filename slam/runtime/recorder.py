@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from slam.core.geometry import invert_transform
 from slam.core.latency import latency_summary
 from slam.core.messages import BackendOutput, FrontendCorrection, LoopCorrection, TrackingResult
 from slam.core.trajectory import Trajectory
@@ -28,6 +29,9 @@ class Recorder:
         self.map_poses: list[tuple[int, np.ndarray]] = []  # live, loop-corrected, as published
         self.map_jumps: list[dict[str, float]] = []
         self.pose_segments: list[int] = []
+        # (index in ``poses`` of the first pose in the new world, new_from_old): the front
+        # end's corrections after its change of frame
+        self.world_changes: list[tuple[int, np.ndarray]] = []
         self.keyframes: list[tuple[int, np.ndarray]] = []
         self.frontend_latency_ms: list[float] = []
         self.frontend_cpu_ms: list[float] = []
@@ -44,8 +48,12 @@ class Recorder:
     def put(self, msg: Any, block: bool = True) -> bool:
         if isinstance(msg, TrackingResult):
             self._add(msg)
-        elif isinstance(msg, FrontendCorrection) and msg.reframe:
-            self._reframe(msg.new_from_old)
+        elif isinstance(msg, FrontendCorrection):
+            if msg.reframe:
+                self._reframe(msg.new_from_old)
+            else:
+                with self._lock:
+                    self.world_changes.append((len(self.poses), np.asarray(msg.new_from_old)))
         elif isinstance(msg, BackendOutput):
             est = msg.estimate
             t_ns = est.t_ns if est is not None else 0
@@ -104,6 +112,10 @@ class Recorder:
             self.poses = [(t, new_from_old @ p) for t, p in self.poses]
             self.map_poses = [(t, new_from_old @ p) for t, p in self.map_poses]
             self.keyframes = [(t, new_from_old @ p) for t, p in self.keyframes]
+            old_from_new = invert_transform(new_from_old)
+            self.world_changes = [
+                (i, new_from_old @ c @ old_from_new) for i, c in self.world_changes
+            ]
 
     def event(self, t_ns: int, text: str) -> None:
         with self._lock:
@@ -148,6 +160,23 @@ class Recorder:
         with self._lock:
             poses, kfs = list(self.poses), list(self.keyframes)
         return trajectory_from_poses(poses), trajectory_from_poses(kfs)
+
+    def continuous_odometry(self, n: int) -> np.ndarray:
+        """The first ``n`` recorded odometry poses (n, 4, 4), each taken back into the world of
+        the first one by undoing the front end's corrections since (map reuse, re-anchoring on
+        the back end's estimates; not its change of frame): a chain without their jumps, whose
+        motion between two frames is the tracking's (the landmarks a re-anchoring sets to the
+        back end's estimates make it so only approximately)."""
+        with self._lock:
+            poses = np.array([p for _, p in self.poses[:n]], dtype=float).reshape(-1, 4, 4)
+            changes = list(self.world_changes)
+        first_from_world = np.eye(4)
+        ends = [i for i, _ in changes[1:]] + [len(poses)]
+        for (start, new_from_old), end in zip(changes, ends, strict=True):
+            first_from_world = first_from_world @ invert_transform(new_from_old)
+            if start < end:
+                poses[start:end] = first_from_world @ poses[start:end]
+        return poses
 
     def live(self) -> Trajectory:
         """Every frame's live pose in the loop-corrected map, as published so far."""

@@ -1,0 +1,62 @@
+"""The recorder's odometry chain without the front end's corrections."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from slam.core.geometry import so3_exp_batch
+from slam.core.messages import FrontendCorrection, TrackingResult
+from slam.runtime.recorder import Recorder
+
+
+def _pose(rotvec: np.ndarray, t: np.ndarray) -> np.ndarray:
+    pose = np.eye(4)
+    pose[:3, :3] = so3_exp_batch(np.asarray(rotvec, float)[None])[0]
+    pose[:3, 3] = t
+    return pose
+
+
+def _result(k: int, pose: np.ndarray) -> TrackingResult:
+    return TrackingResult(
+        t_ns=k * 50_000_000,
+        frame_index=k,
+        state="tracking",
+        segment_id=0,
+        world_from_body=pose,
+        is_keyframe=False,
+        keyframe_id=-1,
+        num_tracked=0,
+        num_inliers=0,
+        feature_pixels=np.zeros((0, 2)),
+        feature_ages=np.zeros(0),
+        latency_ms=1.0,
+    )
+
+
+def test_continuous_odometry_undoes_the_front_ends_corrections() -> None:
+    """Frames published in a world the front end moved twice after its change of frame (map
+    reuse, re-anchoring): the chain is the true motion in the first frame's world again,
+    every pose moved by the change of frame as the outputs are, which keep the poses as
+    published."""
+    rng = np.random.default_rng(3)
+    truth = [_pose(rng.normal(0, 0.3, 3), rng.normal(0, 1.0, 3)) for _ in range(12)]
+    reframe = _pose(np.array([0.0, 0.4, 0.1]), np.array([1.0, -2.0, 0.5]))
+    changes = {
+        4: _pose(np.array([0.01, -0.02, 0.03]), np.array([0.02, 0.0, -0.01])),
+        8: _pose(np.array([0.0, 0.0, 0.05]), np.array([0.0, 0.1, 0.0])),
+    }
+    rec = Recorder(0)
+    world = np.eye(4)  # the front end's world from the true one
+    for k, pose in enumerate(truth):
+        if k == 2:
+            rec.put(FrontendCorrection(k * 50_000_000, reframe, True))
+            world = reframe @ world
+        if k in changes:
+            rec.put(FrontendCorrection(k * 50_000_000, changes[k], False))
+            world = changes[k] @ world
+        rec.put(_result(k, world @ pose))
+    chain = rec.continuous_odometry(len(truth))
+    np.testing.assert_allclose(chain, np.array([reframe @ p for p in truth]), atol=1e-12)
+    np.testing.assert_allclose(rec.continuous_odometry(6), chain[:6], atol=0)
+    published = rec.snapshot()[0].matrices()
+    assert np.abs(published[10] - chain[10]).max() > 0.05
