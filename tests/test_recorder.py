@@ -46,6 +46,10 @@ def test_continuous_odometry_undoes_the_front_ends_corrections() -> None:
         8: _pose(np.array([0.0, 0.0, 0.05]), np.array([0.0, 0.1, 0.0])),
     }
     rec = Recorder(0)
+    assert rec.continuous_odometry(0).shape == (0, 4, 4)
+    rec.put(_result(0, truth[0]))
+    np.testing.assert_array_equal(rec.continuous_odometry(1), truth[0][None])  # no correction yet
+    rec = Recorder(0)
     world = np.eye(4)  # the front end's world from the true one
     for k, pose in enumerate(truth):
         if k == 2:

@@ -171,8 +171,8 @@ class Recorder:
             poses = np.array([p for _, p in self.poses[:n]], dtype=float).reshape(-1, 4, 4)
             changes = list(self.world_changes)
         first_from_world = np.eye(4)
-        ends = [i for i, _ in changes[1:]] + [len(poses)]
-        for (start, new_from_old), end in zip(changes, ends, strict=True):
+        for k, (start, new_from_old) in enumerate(changes):
+            end = changes[k + 1][0] if k + 1 < len(changes) else len(poses)
             first_from_world = first_from_world @ invert_transform(new_from_old)
             if start < end:
                 poses[start:end] = first_from_world @ poses[start:end]
