@@ -3,8 +3,8 @@ IncrementalFixedLagSmoother's estimate, a window of ``lag_s``, the same bits wha
 looks like. GTSAM's own smoother chose what to re-eliminate in heap-address order; that needs
 a Bayes tree with two cliques on one path holding variables to marginalise, which these small
 graphs do not make (it went unnoticed on them: tried); the back end's keyframes of
-room-aggressive with the hold made it (BENCHMARKS.md, 2026-12-02, "sequential runs
-deterministic with the hold")."""
+room-aggressive with the hold made it (BENCHMARKS.md, "Sequential runs deterministic with
+the time offset's hold")."""
 
 from __future__ import annotations
 

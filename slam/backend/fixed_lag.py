@@ -10,7 +10,7 @@ walk's order when two cliques on one path hold variables to marginalise. The ord
 the heap addresses, so two runs of the same input re-eliminated different variables and
 differed by round-off from there on, which loop closures and keyframe decisions then amplify:
 sequential runs of room-aggressive with ``time_offset_hold_s: 1.5`` went apart run to run
-(BENCHMARKS.md, "sequential runs deterministic with the hold", 2026-12-02). Here every
+(BENCHMARKS.md, "Sequential runs deterministic with the time offset's hold"). Here every
 variable of the window is re-eliminated (a batch step of iSAM2, its ordering constrained)
 whenever something is marginalised: deterministic, and what the helper asks for at most.
 Cost: BENCHMARKS.md, same section.
