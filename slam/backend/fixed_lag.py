@@ -12,7 +12,7 @@ differed by round-off from there on, which loop closures and keyframe decisions 
 sequential runs of room-aggressive with ``time_offset_hold_s: 1.5`` went apart run to run
 (BENCHMARKS.md, "Sequential runs deterministic with the time offset's hold"). Here every
 variable of the window is re-eliminated (a batch step of iSAM2, its ordering constrained)
-whenever something is marginalised: deterministic, and what the helper asks for at most.
+whenever something is marginalised: deterministic, a superset of what the helper asks for.
 Cost: BENCHMARKS.md, same section.
 """
 
