@@ -150,12 +150,12 @@ class BackendConfig:
     time_offset_hold_s: float = bounded(0.0, ge=0)
     """Once initialised and moving, keyframes wait (the front end runs on alone) until the offset
     is known, at most this long per run; then they are fused in the IMU clock. 0 (default):
-    never wait. 1.5 s takes the ATE at +-20 ms to that of a zero-offset run on fast motion
-    (BENCHMARKS.md, "the early trajectory kept"); slow motion may not know the offset within
-    it. Off by default: with it on, sequential runs of room-aggressive are not the same run to
-    run (not found why; BENCHMARKS.md, fifth session), it cost room-aggressive 0.55 mm of
-    sequential live ATE at zero offset, and a run interrupted while keyframes wait has no
-    smoothed poses for them (keyframes.tum)."""
+    never wait. 1.5 s: set it for a rig whose offset is not known; at -30..+30 ms it keeps the
+    ATE of fast motion within 1.3x of a zero-offset run (without it 4-14x). Off by default: at
+    zero offset it cost room-figure8, room-loop and the hall 17-47 % of live ATE (slower
+    motion: the offset is not known within the hold; BENCHMARKS.md, "Sequential runs
+    deterministic with the time offset's hold"); a run interrupted while keyframes wait has
+    no smoothed poses for them."""
 
     # --- divergence checks ----------------------------------------------------------------------
     max_velocity_m_s: float = bounded(20.0, gt=0)

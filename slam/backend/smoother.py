@@ -10,8 +10,8 @@ rectified, so no stereo factor) on landmarks ``L(id)``. A landmark enters once
 ``min_keyframes_per_landmark`` keyframes in the window saw it and it triangulates with small
 reprojection error; later observations are gated by their predicted reprojection error; after
 each update landmarks whose newest observation is an outlier are culled (that observation is
-removed, no more are added). Old states and landmarks are marginalised by GTSAM's
-``IncrementalFixedLagSmoother`` (``lag_s``), so memory and cost stay bounded.
+removed, no more are added). Old states and landmarks are marginalised
+(``slam.backend.fixed_lag``, ``lag_s``), so memory and cost stay bounded.
 
 Before initialisation the back end buffers keyframes and publishes uninitialised estimates in
 the front end's VO frame; after initialisation (``slam.backend.init``) everything is in a
@@ -35,6 +35,7 @@ import gtsam
 import numpy as np
 
 from slam.backend.config import BackendConfig
+from slam.backend.fixed_lag import FixedLagSmoother
 from slam.backend.imu import (
     backend_imu_buffer,
     make_bias,
@@ -189,7 +190,7 @@ class VioBackend:
         self._monocular = not calibration.is_stereo
         self.last_scale = 0.0  # monocular: the start's scale tried at the latest keyframe, or 0
         self._init_keyframes: list[Keyframe] = []
-        self._smoother: gtsam.IncrementalFixedLagSmoother | None = None
+        self._smoother: FixedLagSmoother | None = None
         self._values = gtsam.Values()
         self._states: list[_State] = []
         self._landmarks: set[int] = set()
@@ -522,9 +523,9 @@ class VioBackend:
         remove: list[int] | None = None,
     ) -> None:
         """One smoother update (a seam for tests to inject failures)."""
-        self._live_smoother().update(graph, values, cast(Any, stamps), remove or [])
+        self._live_smoother().update(graph, values, stamps, remove or [])
 
-    def _live_smoother(self) -> gtsam.IncrementalFixedLagSmoother:
+    def _live_smoother(self) -> FixedLagSmoother:
         if self._smoother is None:
             raise RuntimeError("smoother used before initialisation")
         return self._smoother
@@ -546,7 +547,7 @@ class VioBackend:
         # reuse the slots of removed/marginalised factors: otherwise the factor array grows by
         # every factor ever added (measured: +54 MB RSS over a 20-minute run)
         params.findUnusedFactorSlots = True
-        self._smoother = gtsam.IncrementalFixedLagSmoother(cfg.lag_s, params)
+        self._smoother = FixedLagSmoother(cfg.lag_s, params)
         graph = gtsam.NonlinearFactorGraph()
         sr, sp = cfg.prior_pose_sigma_rad, cfg.prior_pose_sigma_m
         graph.add(
