@@ -279,8 +279,10 @@ PRESETS: dict[str, dict[str, Any]] = {
         "monocular": True,
         # the accelerometer's scale-error noise of the reading's deviation, not of gravity
         # (with gravity's, room-figure8's scale ran away: Sim(3) 0.82 -> 1.024), and the
-        # smoother's scale checked against the IMU every second (BENCHMARKS.md)
+        # smoother's scale checked against the IMU every second; a 2 s lag (room-figure8's
+        # Sim(3) scale 1.024 -> 1.006; BENCHMARKS.md)
         "backend": {
+            "lag_s": 2.0,
             "map_landmarks": False,
             "min_keyframes_per_landmark": 3,
             "imu_accel_scale_error_of_deviation": True,
