@@ -33,6 +33,9 @@ class BackendConfig:
     densities as they are."""
     imu_accel_scale_error: float = bounded(0.005, ge=0, le=0.2)
     """The same for the accelerometer (times the mean specific force, gravity included)."""
+    imu_accel_scale_error_of_deviation: bool = False
+    """The accelerometer's term times the mean deviation of the specific force from its mean
+    over the interval instead (the constant part is left to the bias state)."""
 
     # --- initialisation -------------------------------------------------------------------------
     init_mode: str = "auto"
@@ -75,6 +78,18 @@ class BackendConfig:
     mono_init_max_scale_disagreement: float = bounded(0.1, gt=0)
     """Monocular start: reject the alignment when the first two thirds of its keyframes give
     a scale differing by more than this fraction (too little excitation to fix it)."""
+
+    mono_scale_check_window_s: float = bounded(0.0, ge=0)
+    """Monocular, after the start: every ``mono_scale_check_every_s`` the smoother's keyframe
+    estimates of the last this many seconds are aligned with the IMU again (the start's
+    alignment on metric poses: scale 1 expected); 0: no check."""
+    mono_scale_check_every_s: float = bounded(1.0, gt=0)
+    """How often the scale check runs (keyframe times)."""
+    mono_scale_check_max_std: float = bounded(0.03, gt=0)
+    """A check counts only when its scale's standard deviation is under this fraction."""
+    mono_scale_check_tolerance: float = bounded(0.1, gt=0, lt=1)
+    """A counted check whose scale is off 1 by more than this fraction restarts the smoother
+    at the newest state with the check's velocity (the scale follows the velocity)."""
 
     # --- smoother -------------------------------------------------------------------------------
     lag_s: float = bounded(1.0, gt=0)
