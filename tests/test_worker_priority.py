@@ -91,3 +91,34 @@ def test_end_of_run_work_runs_at_full_priority() -> None:
     policy, _, nice, _ = stage.got[0]
     assert policy == os.SCHED_OTHER
     assert nice == os.getpriority(os.PRIO_PROCESS, 0)
+
+
+@pytest.mark.parametrize(
+    ("mapper_idle", "idle_workers", "expected"),
+    [(True, False, True), (False, False, False), (False, True, True)],
+)
+def test_live_mapper_is_sched_idle_unless_configured_otherwise(
+    monkeypatch: pytest.MonkeyPatch, mapper_idle: bool, idle_workers: bool, expected: bool
+) -> None:
+    """The run's mapper stage gets ``idle_worker`` from ``mapping.idle_worker`` (default on: at
+    nice +15 the mapper kept its core while the front end waited) or ``player.idle_workers``."""
+    from dataclasses import replace
+
+    from datasets.memory import random_sequence
+    from slam.config import preset_config
+    from slam.runtime import wiring
+
+    seen: list[bool] = []
+
+    class _Mapper:
+        def __init__(self, *args: Any, **kw: Any) -> None:
+            seen.append(args[3])
+
+    monkeypatch.setattr(wiring, "MapperStage", _Mapper)
+    cfg = preset_config("stereo-vo")
+    cfg.loop_closure = False
+    cfg.player.idle_workers = idle_workers
+    cfg.mapping = replace(cfg.mapping, enabled=True, idle_worker=mapper_idle)
+    wiring.build(random_sequence(num_frames=3), cfg, None)
+    assert seen == [expected]
+    assert preset_config("stereo-vo").mapping.idle_worker  # the default
