@@ -220,10 +220,11 @@ class PlayerConfig:
     Python (the player decoding, a queue feeder pickling) can take up to this long, several
     times per frame. A shorter interval trades a little throughput for front-end latency."""
     idle_workers: bool = False
-    """Run the loop-closure and mapper processes under Linux's SCHED_IDLE policy: on an
+    """Run the loop-closure (and mapper) processes under Linux's SCHED_IDLE policy: on an
     otherwise idle machine a waking front end preempts them at once, but while other
     normal-priority work keeps every core busy they get no CPU at all. False (the default):
-    nice levels only (``slam.runtime.priority``)."""
+    the loop worker at its nice level only (``slam.runtime.priority``); the mapper is
+    SCHED_IDLE unless ``mapping.idle_worker`` is false."""
 
 
 @dataclass

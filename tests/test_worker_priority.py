@@ -125,3 +125,34 @@ def test_worker_counts_its_end_from_the_runs_end(in_process: bool) -> None:
     stage.join(60)
     assert stage.error is None and stage.final_seen.is_set()
     assert stage.final == began_s
+
+
+@pytest.mark.parametrize(
+    ("mapper_idle", "idle_workers", "expected"),
+    [(True, False, True), (False, False, False), (False, True, True)],
+)
+def test_live_mapper_is_sched_idle_unless_configured_otherwise(
+    monkeypatch: pytest.MonkeyPatch, mapper_idle: bool, idle_workers: bool, expected: bool
+) -> None:
+    """The run's mapper stage gets ``idle_worker`` from ``mapping.idle_worker`` (default on: at
+    nice +15 the mapper kept its core while the front end waited) or ``player.idle_workers``."""
+    from dataclasses import replace
+
+    from datasets.memory import random_sequence
+    from slam.config import preset_config
+    from slam.runtime import wiring
+
+    seen: list[bool] = []
+
+    class _Mapper:
+        def __init__(self, *args: Any, **kw: Any) -> None:
+            seen.append(args[3])
+
+    monkeypatch.setattr(wiring, "MapperStage", _Mapper)
+    cfg = preset_config("stereo-vo")
+    cfg.loop_closure = False
+    cfg.player.idle_workers = idle_workers
+    cfg.mapping = replace(cfg.mapping, enabled=True, idle_worker=mapper_idle)
+    wiring.build(random_sequence(num_frames=3), cfg, None)
+    assert seen == [expected]
+    assert preset_config("stereo-vo").mapping.idle_worker  # the default
