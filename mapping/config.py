@@ -35,10 +35,19 @@ class MapperStageConfig:
     """Plane-sweep depth hypotheses (inverse-depth sampled; ``depth_method: sweep``)."""
     sweep_threads: int = bounded(1, ge=1)
     """Threads of the worker's depth (plane sweep strips; SGBM: OpenCV's pool) and fusion
-    (numba); a background process (nice +15, or SCHED_IDLE: ``player.idle_workers``), so it
+    (numba); a background process (SCHED_IDLE, or nice +15: ``idle_worker``), so it
     yields to tracking. 1: the mapper needs ~0.3 of a core at ~3-4 keyframes/s, and a second
     thread only takes the front end's core in bursts (numba's workers spin when descheduled:
     TSDF 13 -> 34 ms CPU per depth map on 2 threads under load, BENCHMARKS.md "Mapping")."""
+    idle_worker: bool = True
+    """Run the mapper process's live work under Linux's SCHED_IDLE policy (its end-of-run
+    catch-up and mesh stay at normal priority). A core that runs only SCHED_IDLE work counts
+    as idle when a thread wakes, so the front end (and the player, reader and other workers)
+    take it at once; at nice +15 the mapper kept its core for its slice and the front end
+    queued behind (BENCHMARKS.md "Front end's p99 with the mapper"). While normal-priority
+    work keeps both cores busy the mapper gets almost no CPU: its keyframes are dropped and
+    the new views among them fused at the end (``catch_up_*``). False: nice +15 only
+    (``player.idle_workers`` puts it under SCHED_IDLE too)."""
     max_backlog: int = bounded(4, ge=1)
     """Keyframes waiting for the mapper; beyond that a keyframe is dropped (and counted)."""
     catch_up_max_keyframes: int = bounded(300, ge=0)

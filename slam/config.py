@@ -220,10 +220,11 @@ class PlayerConfig:
     Python (the player decoding, a queue feeder pickling) can take up to this long, several
     times per frame. A shorter interval trades a little throughput for front-end latency."""
     idle_workers: bool = False
-    """Run the loop-closure and mapper processes under Linux's SCHED_IDLE policy: on an
+    """Run the loop-closure (and mapper) processes under Linux's SCHED_IDLE policy: on an
     otherwise idle machine a waking front end preempts them at once, but while other
     normal-priority work keeps every core busy they get no CPU at all. False (the default):
-    nice levels only (``slam.runtime.priority``)."""
+    the loop worker at its nice level only (``slam.runtime.priority``); the mapper is
+    SCHED_IDLE unless ``mapping.idle_worker`` is false."""
 
 
 @dataclass
@@ -277,7 +278,17 @@ PRESETS: dict[str, dict[str, Any]] = {
         "use_imu": True,
         "loop_closure": True,
         "monocular": True,
-        "backend": {"map_landmarks": False, "min_keyframes_per_landmark": 3},
+        # the accelerometer's scale-error noise of the reading's deviation, not of gravity
+        # (with gravity's, room-figure8's scale ran away: Sim(3) 0.82 -> 1.024), and the
+        # smoother's scale checked against the IMU every second; a 2 s lag (room-figure8's
+        # Sim(3) scale 1.024 -> 1.006; BENCHMARKS.md)
+        "backend": {
+            "lag_s": 2.0,
+            "map_landmarks": False,
+            "min_keyframes_per_landmark": 3,
+            "imu_accel_scale_error_of_deviation": True,
+            "mono_scale_check_window_s": 5.0,
+        },
         # the monocular front end's KLT has no predicted start: its backward check as measured
         # (on the base level only, the initialisation came 0.15 s later in test_mono_pipeline)
         "frontend": {"klt_backward_levels": 1},

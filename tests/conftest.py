@@ -5,7 +5,10 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
+
+from slam.core.messages import TrackingResult
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 
@@ -53,3 +56,32 @@ def synth_mcap(path: Path, profile: str, duration_s: float) -> Path:
         slam(["synth", str(path), "--profile", profile, "--duration", str(duration_s), "-q"]) == 0
     )
     return path
+
+
+def tracking_result(
+    t_ns: int,
+    world_from_body: np.ndarray | None,
+    *,
+    frame_index: int | None = None,
+    segment: int = 0,
+    anchor: int = -1,
+    time_offset_ns: int = 0,
+) -> TrackingResult:
+    """A front-end result with no features, for tests of what consumes poses (recorder,
+    viewer, live pose): tracking when there is a pose, lost without."""
+    return TrackingResult(
+        t_ns=t_ns,
+        frame_index=t_ns if frame_index is None else frame_index,
+        state="tracking" if world_from_body is not None else "lost",
+        segment_id=segment,
+        world_from_body=world_from_body,
+        is_keyframe=False,
+        keyframe_id=-1,
+        num_tracked=0,
+        num_inliers=0,
+        feature_pixels=np.zeros((0, 2)),
+        feature_ages=np.zeros(0),
+        latency_ms=1.0,
+        anchor_keyframe_id=anchor,
+        time_offset_ns=time_offset_ns,
+    )

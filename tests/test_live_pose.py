@@ -7,34 +7,14 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from conftest import synth_mcap
+from conftest import synth_mcap, tracking_result
 
 from datasets.rigs import euroc_like_calibration
 from slam.config import FrontendConfig, preset_config
 from slam.core.geometry import make_transform, so3_exp
-from slam.core.messages import LoopCorrection, TrackingResult
+from slam.core.messages import LoopCorrection
 from slam.frontend.tracker import FrontEnd
 from slam.runtime.frontend import FrontendStage
-
-
-def _result(
-    t_ns: int, pose: np.ndarray | None, segment: int = 0, anchor: int = -1
-) -> TrackingResult:
-    return TrackingResult(
-        t_ns=t_ns,
-        frame_index=t_ns,
-        state="tracking" if pose is not None else "lost",
-        segment_id=segment,
-        world_from_body=pose,
-        is_keyframe=False,
-        keyframe_id=-1,
-        num_tracked=0,
-        num_inliers=0,
-        feature_pixels=np.zeros((0, 2)),
-        feature_ages=np.zeros(0),
-        latency_ms=1.0,
-        anchor_keyframe_id=anchor,
-    )
 
 
 def _correction(generation: int, map_from_odom: dict[int, np.ndarray]) -> LoopCorrection:
@@ -46,27 +26,27 @@ def test_published_pose_is_odometry_under_the_latest_correction() -> None:
     fe = FrontEnd(euroc_like_calibration(), FrontendConfig())
     stage = FrontendStage(fe, threaded=False, queue_size=2, map_source=lambda: latest[0])
     odo = make_transform(so3_exp(np.array([0.0, 0.0, 0.3])), np.array([2.0, 1.0, 0.5]))
-    first = stage._in_map(_result(1, odo))
+    first = stage._in_map(tracking_result(1, odo))
     np.testing.assert_array_equal(first.map_from_body, odo)  # no loop yet: the odometry
     assert first.map_generation == 0 and first.map_jump_m == 0.0
     fix = make_transform(so3_exp(np.array([0.0, 0.0, np.radians(2.0)])), np.array([0.1, 0, 0]))
     latest[0] = _correction(1, {0: fix})
-    second = stage._in_map(_result(2, odo))
+    second = stage._in_map(tracking_result(2, odo))
     np.testing.assert_allclose(second.map_from_body, fix @ odo)
     np.testing.assert_array_equal(second.world_from_body, odo)  # the odometry never moves
     expected_m = float(np.linalg.norm((fix @ odo)[:3, 3] - odo[:3, 3]))
     assert second.map_generation == 1
     assert abs(second.map_jump_m - expected_m) < 1e-12 and abs(second.map_jump_deg - 2.0) < 1e-9
-    third = stage._in_map(_result(3, odo))  # the same correction: no new jump
+    third = stage._in_map(tracking_result(3, odo))  # the same correction: no new jump
     np.testing.assert_allclose(third.map_from_body, fix @ odo)
     assert third.map_jump_m == 0.0
     # tracked on old landmarks found again in the map: already in the map, published as is
-    anchored = stage._in_map(_result(3, odo, anchor=3))
+    anchored = stage._in_map(tracking_result(3, odo, anchor=3))
     np.testing.assert_array_equal(anchored.map_from_body, odo)
     assert abs(anchored.map_jump_m - expected_m) < 1e-12  # leaving the correction is a jump
-    other = stage._in_map(_result(4, odo, segment=1))  # a segment it does not correct
+    other = stage._in_map(tracking_result(4, odo, segment=1))  # a segment it does not correct
     np.testing.assert_array_equal(other.map_from_body, odo)
-    lost = stage._in_map(_result(5, None))
+    lost = stage._in_map(tracking_result(5, None))
     assert lost.map_from_body is None and lost.map_generation == 1
 
 
@@ -87,7 +67,7 @@ def test_latest_correction_also_moves_frames_on_old_landmarks() -> None:
         live_correction="latest",
     )
     odo = make_transform(so3_exp(np.array([0.1, 0.0, 0.3])), np.array([2.0, 1.0, 0.5]))
-    anchored = stage._in_map(_result(1, odo, anchor=3))
+    anchored = stage._in_map(tracking_result(1, odo, anchor=3))
     np.testing.assert_allclose(anchored.map_from_body, fix @ odo)
     with pytest.raises(SlamError, match="live_correction"):
         FrontendStage(fe, threaded=False, queue_size=2, live_correction="anchor")

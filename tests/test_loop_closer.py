@@ -295,8 +295,8 @@ def test_fusion_search_stops_at_its_deadline(loop_scene, closed) -> None:
 
 def test_backlog_that_used_the_budget_skips_the_adjustment() -> None:
     """The end of a run behind on a busy machine: when draining the loop backlog already took
-    the global adjustment's whole budget, the adjustment is skipped and the summary says why;
-    within the budget it is not skipped for that reason."""
+    most of the global adjustment's budget, the adjustment is skipped and the summary says
+    why; with enough of it left it is not skipped for that reason."""
     import time
 
     from datasets.rigs import euroc_like_calibration
@@ -305,11 +305,12 @@ def test_backlog_that_used_the_budget_skips_the_adjustment() -> None:
     core = LoopCore(euroc_like_calibration(), LoopClosureConfig(global_ba_budget_fraction=0.1))
     core.closer.t_ns_of.update({0: 0, 1: 20_000_000_000})  # keyframes 20 s apart: 2 s budget
     assert core.closer.global_adjustment_budget_s() == pytest.approx(2.0)
-    core.end_began_s = time.perf_counter() - 3.0
-    final = core.finish(interrupted=False)
-    assert final.stats["global_ba_skipped"].startswith("the loop backlog used its time budget")
-    assert final.stats["global_ba"] is None
-    core.end_began_s = time.perf_counter()
+    for spent_s in (3.0, 1.5):  # all of it; less than global_ba_min_budget_share (0.4) left
+        core.end_began_s = time.perf_counter() - spent_s
+        final = core.finish(interrupted=False)
+        assert final.stats["global_ba_skipped"].startswith("the loop backlog used its time budget")
+        assert final.stats["global_ba"] is None
+    core.end_began_s = time.perf_counter() - 0.5
     assert core.finish(interrupted=False).stats["global_ba_skipped"] is None
 
 

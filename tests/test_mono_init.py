@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from datasets.synth.vio_world import generate_world
-from slam.backend.mono_init import align_mono
+from slam.backend.mono_init import align_mono, check_scale
 from slam.core.geometry import scale_body_pose
 
 
@@ -77,3 +77,47 @@ def test_alignment_of_a_still_start_is_rejected():
     kfs = world.keyframes[5:20]  # inside the still part
     res = _align(world, kfs, 1.0)
     assert res is not None and not res.accepted
+
+
+def _check(world, poses, t_ns, tolerance=0.1):
+    imu = world.imu.arrays
+    return check_scale(
+        t_ns,
+        poses,
+        world.calibration.cameras[0].body_from_cam,
+        imu.t_ns,
+        imu.gyro_rad_s,
+        imu.accel_m_s2,
+        world.calibration.imu,
+        imu_gap_max_s=0.1,
+        max_gravity_error_m_s2=0.5,
+        max_scale_disagreement=0.1,
+        max_scale_std=0.03,
+        tolerance=tolerance,
+    )
+
+
+def test_scale_check_detects_and_corrects_a_scale_runaway():
+    """A smoother's metric keyframe estimates whose scale ran away (30 % too large over the last
+    5 s, about the newest keyframe): the check on them with the IMU finds the factor and the
+    newest keyframe's true velocity; the true poses pass."""
+    world = generate_world(duration_s=6.0, seed=0, start_s=3.0)
+    t_ns = np.array([k.t_ns for k in world.keyframes])
+    sel = t_ns >= t_ns[-1] - 5_000_000_000
+    truth = world.world_from_body_gt[sel]
+    ok = _check(world, truth, t_ns[sel])
+    assert ok is not None and ok.counted and not ok.wrong
+    assert ok.scale == pytest.approx(1.0, abs=0.03)
+    drifted = truth.copy()
+    centre = truth[-1, :3, 3]
+    drifted[:, :3, 3] = centre + 1.3 * (truth[:, :3, 3] - centre)
+    res = _check(world, drifted, t_ns[sel])
+    assert res is not None and res.counted and res.wrong
+    assert res.scale == pytest.approx(1.0 / 1.3, rel=0.03)
+    v_true = world.trajectory.sample(np.array([(t_ns[sel][-1] - 1_000_000_000) * 1e-9]))
+    assert np.linalg.norm(res.velocity_m_s - v_true.velocities_m_s[0]) < 0.08
+    # within the tolerance: counted, not wrong
+    near = truth.copy()
+    near[:, :3, 3] = centre + 1.05 * (truth[:, :3, 3] - centre)
+    res_near = _check(world, near, t_ns[sel])
+    assert res_near is not None and res_near.counted and not res_near.wrong

@@ -133,7 +133,8 @@ def test_restamped_frames_wait_for_their_imu() -> None:
 def test_outputs_restamp_frames_from_before_the_offset_was_known() -> None:
     """Rows recorded with camera stamps (before the offset was applied) move into the IMU
     clock by the final offset; rows already in it and the poses stay as they are."""
-    from slam.core.messages import TrackingResult
+    from conftest import tracking_result
+
     from slam.runtime.recorder import Recorder
 
     rec = Recorder(0)
@@ -143,21 +144,7 @@ def test_outputs_restamp_frames_from_before_the_offset_was_known() -> None:
         pose = np.eye(4)
         pose[0, 3] = float(k)
         rec.put(
-            TrackingResult(
-                t_ns=k * 50_000_000 + applied,
-                frame_index=k,
-                state="tracking",
-                segment_id=0,
-                world_from_body=pose,
-                is_keyframe=False,
-                keyframe_id=-1,
-                num_tracked=0,
-                num_inliers=0,
-                feature_pixels=np.zeros((0, 2)),
-                feature_ages=np.zeros(0),
-                latency_ms=1.0,
-                time_offset_ns=applied,
-            )
+            tracking_result(k * 50_000_000 + applied, pose, frame_index=k, time_offset_ns=applied)
         )
     live = rec.in_imu_clock(rec.live(), offset_ns)
     np.testing.assert_array_equal(live.t_ns, np.arange(6) * 50_000_000 + offset_ns)

@@ -13,7 +13,7 @@ from typing import Any
 
 import psutil
 import pytest
-from conftest import PROJECT_ROOT, synth_mcap
+from conftest import PROJECT_ROOT, synth_mcap, tracking_result
 
 from slam.config import preset_config
 
@@ -141,7 +141,7 @@ def test_viewer_time_is_a_duration_since_the_first_frame() -> None:
     import numpy as np
 
     from datasets.memory import random_sequence
-    from slam.core.messages import LoopCorrection, TrackingResult
+    from slam.core.messages import LoopCorrection
     from slam.runtime import wiring
     from slam.runtime.viewer import TIMELINE, ViewerSession
 
@@ -153,23 +153,7 @@ def test_viewer_time_is_a_duration_since_the_first_frame() -> None:
     cfg.player.sequential = True
     viewer = wiring.build(seq, cfg, ViewerSession(rec, "save:x.rrd")).viewer
     assert viewer is not None
-    empty = np.zeros((0, 2))
-    viewer.process(
-        TrackingResult(
-            t0 + 2_400_000_000,
-            48,
-            "tracking",
-            0,
-            np.eye(4),
-            False,
-            -1,
-            0,
-            0,
-            empty,
-            empty[:, 0],
-            1.0,
-        )
-    )
+    viewer.process(tracking_result(t0 + 2_400_000_000, np.eye(4), frame_index=48))
     viewer.process(LoopCorrection(t0 + 3_000_000_000, 0, 5, 1, 40, 1, {0: np.eye(4)}, {}))
     assert viewer.failed_logs == 0
     assert rec.times == [

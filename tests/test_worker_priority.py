@@ -91,3 +91,68 @@ def test_end_of_run_work_runs_at_full_priority() -> None:
     policy, _, nice, _ = stage.got[0]
     assert policy == os.SCHED_OTHER
     assert nice == os.getpriority(os.PRIO_PROCESS, 0)
+
+
+class _ReportEndBegan(WorkerCore):
+    def handle(self, msg: Any) -> list[Any]:
+        return []
+
+    def finish(self, interrupted: bool) -> Any:
+        return self.end_began_s
+
+
+class _EndProbe(ProcessStage):
+    def __init__(self, in_process: bool):
+        super().__init__("probe", 4, True, _ReportEndBegan, (), role="loop", in_process=in_process)
+        self.final: Any = None
+
+    def process(self, msg: Any) -> None:
+        self.send(msg)
+
+    def on_final(self, payload: Any) -> None:
+        self.final = payload
+
+
+@pytest.mark.parametrize("in_process", [True, False])
+def test_worker_counts_its_end_from_the_runs_end(in_process: bool) -> None:
+    """A worker's end-of-run budget counts from when the run's end began (the front end's last
+    frame, ``EndOfStream.run_end_began_s``), not from when the worker heard of it: the clock
+    (``time.perf_counter``, CLOCK_MONOTONIC) is the same in the worker process."""
+    stage = _EndProbe(in_process)
+    stage.start()
+    began_s = time.perf_counter() - 5.0  # the front end ended 5 s ago
+    stage.close(end_began_s=began_s)
+    stage.join(60)
+    assert stage.error is None and stage.final_seen.is_set()
+    assert stage.final == began_s
+
+
+@pytest.mark.parametrize(
+    ("mapper_idle", "idle_workers", "expected"),
+    [(True, False, True), (False, False, False), (False, True, True)],
+)
+def test_live_mapper_is_sched_idle_unless_configured_otherwise(
+    monkeypatch: pytest.MonkeyPatch, mapper_idle: bool, idle_workers: bool, expected: bool
+) -> None:
+    """The run's mapper stage gets ``idle_worker`` from ``mapping.idle_worker`` (default on: at
+    nice +15 the mapper kept its core while the front end waited) or ``player.idle_workers``."""
+    from dataclasses import replace
+
+    from datasets.memory import random_sequence
+    from slam.config import preset_config
+    from slam.runtime import wiring
+
+    seen: list[bool] = []
+
+    class _Mapper:
+        def __init__(self, *args: Any, **kw: Any) -> None:
+            seen.append(args[3])
+
+    monkeypatch.setattr(wiring, "MapperStage", _Mapper)
+    cfg = preset_config("stereo-vo")
+    cfg.loop_closure = False
+    cfg.player.idle_workers = idle_workers
+    cfg.mapping = replace(cfg.mapping, enabled=True, idle_worker=mapper_idle)
+    wiring.build(random_sequence(num_frames=3), cfg, None)
+    assert seen == [expected]
+    assert preset_config("stereo-vo").mapping.idle_worker  # the default

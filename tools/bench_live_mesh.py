@@ -18,7 +18,7 @@ one session. From the mesh run's outputs:
 
 At ``--speed max`` the player does not wait for the mapper, so keyframes are dropped by
 design; the mesh scores still say what the fused keyframes give. At ``--speed 1`` the drop
-rate is the figure (run it on an idle machine: the mapper is a nice +15 background worker).
+rate is the figure (run it on an idle machine: the mapper is a SCHED_IDLE background worker).
 Ends with a Markdown table of the rows (also in ``live_mesh.md``).
 
     .venv/bin/python -m tools.bench_live_mesh --out /tmp/live_mesh [--speed 1] [--only hall]

@@ -85,12 +85,14 @@ def _true_rotation_error_deg(found: list[list[float]]) -> float:
     return float(np.degrees(rotation_angle_rad(np.asarray(found) @ truth.T)))
 
 
-def _run(seq: Path, out: Path, online: bool) -> dict[str, Any]:
+def _run(seq: Path, out: Path, online: bool, hold_s: float | None = None) -> dict[str, Any]:
     if not (out / "stats.json").exists():
         out.mkdir(parents=True, exist_ok=True)
         cfg = out.parent / f"{out.name}.yaml"
+        hold = "" if hold_s is None else f"  time_offset_hold_s: {hold_s:g}\n"
         cfg.write_text(
             f"preset: euroc-stereo-imu\nbackend:\n  time_offset_online: {str(online).lower()}\n"
+            + hold
         )
         res = _slam("run", str(seq), "--out", str(out), "--config", str(cfg), "--sequential",
                     "--speed", "max", "--no-progress")  # fmt: skip
@@ -131,6 +133,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--no-check", action="store_true", help="runs only")
     ap.add_argument("--json", type=Path, help="write the rows here")
+    ap.add_argument(
+        "--hold-s",
+        type=float,
+        default=None,
+        help="backend.time_offset_hold_s of the runs (default: the configuration's default)",
+    )
     args = ap.parse_args(argv)
     args.cache.mkdir(parents=True, exist_ok=True)
     offsets = [float(x) for x in args.offsets.split(",")]
@@ -156,10 +164,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.no_runs or rot:
             pass
         else:
-            on = _run(seq, args.cache / "runs" / f"{tag}_online", True)
+            on = _run(seq, args.cache / "runs" / f"{tag}_online", True, args.hold_s)
             row.update({f"on_{k}": v for k, v in on.items()})
             if offset_ms in fixed:
-                off = _run(seq, args.cache / "runs" / f"{tag}_fixed", False)
+                off = _run(seq, args.cache / "runs" / f"{tag}_fixed", False, args.hold_s)
                 row.update({f"off_{k}": v for k, v in off.items()})
         rows.append(row)
         print(json.dumps(row), file=sys.stderr, flush=True)

@@ -33,6 +33,9 @@ class BackendConfig:
     densities as they are."""
     imu_accel_scale_error: float = bounded(0.005, ge=0, le=0.2)
     """The same for the accelerometer (times the mean specific force, gravity included)."""
+    imu_accel_scale_error_of_deviation: bool = False
+    """The accelerometer's term times the mean deviation of the specific force from its mean
+    over the interval instead (the constant part is left to the bias state)."""
 
     # --- initialisation -------------------------------------------------------------------------
     init_mode: str = "auto"
@@ -75,6 +78,18 @@ class BackendConfig:
     mono_init_max_scale_disagreement: float = bounded(0.1, gt=0)
     """Monocular start: reject the alignment when the first two thirds of its keyframes give
     a scale differing by more than this fraction (too little excitation to fix it)."""
+
+    mono_scale_check_window_s: float = bounded(0.0, ge=0)
+    """Monocular, after the start: every ``mono_scale_check_every_s`` the smoother's keyframe
+    estimates of the last this many seconds are aligned with the IMU again (the start's
+    alignment on metric poses: scale 1 expected); 0: no check."""
+    mono_scale_check_every_s: float = bounded(1.0, gt=0)
+    """How often the scale check runs (keyframe times)."""
+    mono_scale_check_max_std: float = bounded(0.03, gt=0)
+    """A check counts only when its scale's standard deviation is under this fraction."""
+    mono_scale_check_tolerance: float = bounded(0.1, gt=0, lt=1)
+    """A counted check whose scale is off 1 by more than this fraction restarts the smoother
+    at the newest state with the check's velocity (the scale follows the velocity)."""
 
     # --- smoother -------------------------------------------------------------------------------
     lag_s: float = bounded(1.0, gt=0)
@@ -150,12 +165,12 @@ class BackendConfig:
     time_offset_hold_s: float = bounded(0.0, ge=0)
     """Once initialised and moving, keyframes wait (the front end runs on alone) until the offset
     is known, at most this long per run; then they are fused in the IMU clock. 0 (default):
-    never wait. 1.5 s takes the ATE at +-20 ms to that of a zero-offset run on fast motion
-    (BENCHMARKS.md, "the early trajectory kept"); slow motion may not know the offset within
-    it. Off by default: with it on, sequential runs of room-aggressive are not the same run to
-    run (not found why; BENCHMARKS.md, fifth session), it cost room-aggressive 0.55 mm of
-    sequential live ATE at zero offset, and a run interrupted while keyframes wait has no
-    smoothed poses for them (keyframes.tum)."""
+    never wait. 1.5 s: set it for a rig whose offset is not known; at -30..+30 ms it keeps the
+    ATE of fast motion within 1.3x of a zero-offset run (without it 4-14x). Off by default: at
+    zero offset it cost room-figure8, room-loop and the hall 17-47 % of live ATE (slower
+    motion: the offset is not known within the hold; BENCHMARKS.md, "Sequential runs
+    deterministic with the time offset's hold"); a run interrupted while keyframes wait has
+    no smoothed poses for them."""
 
     # --- divergence checks ----------------------------------------------------------------------
     max_velocity_m_s: float = bounded(20.0, gt=0)

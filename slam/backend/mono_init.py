@@ -325,3 +325,55 @@ def align_mono(
         scale_subset=scale_sub,
         scale_std=scale_std,
     )
+
+
+@dataclass(frozen=True, eq=False)
+class ScaleCheck:
+    """The result of :func:`check_scale`."""
+
+    scale: float
+    """Metric metres per metre of the checked poses (1: the smoother's scale agrees)."""
+    scale_std: float
+    counted: bool
+    """The alignment passed the start's checks (excitation, gravity, consistency)."""
+    wrong: bool
+    """Counted and off 1 by more than the tolerance."""
+    velocity_m_s: np.ndarray
+    """(3,) the newest keyframe's metric velocity from the alignment, the poses' frame."""
+
+
+def check_scale(
+    t_kf_ns: np.ndarray,
+    world_from_body: np.ndarray,
+    body_from_cam0: np.ndarray,
+    imu_t_ns: np.ndarray,
+    imu_gyro_rad_s: np.ndarray,
+    imu_accel_m_s2: np.ndarray,
+    imu: ImuCalibration,
+    imu_gap_max_s: float,
+    max_gravity_error_m_s2: float,
+    max_scale_disagreement: float,
+    max_scale_std: float,
+    tolerance: float,
+) -> ScaleCheck | None:
+    """The start's alignment (:func:`align_mono`) run again on metric keyframe poses (a
+    smoother's estimates of the last seconds): their scale agrees with the IMU when it comes
+    out 1. None when the IMU does not cover the keyframes."""
+    res = align_mono(
+        t_kf_ns,
+        world_from_body,
+        body_from_cam0,
+        imu_t_ns,
+        imu_gyro_rad_s,
+        imu_accel_m_s2,
+        imu,
+        imu_gap_max_s,
+        max_gravity_error_m_s2,
+        max_scale_disagreement,
+        max_scale_std=max_scale_std,
+    )
+    if res is None:
+        return None
+    wrong = res.accepted and abs(res.scale - 1.0) > tolerance
+    velocity = np.asarray(res.velocities_vo_m_s[-1], float)
+    return ScaleCheck(res.scale, res.scale_std, res.accepted, wrong, velocity)

@@ -10,8 +10,8 @@ rectified, so no stereo factor) on landmarks ``L(id)``. A landmark enters once
 ``min_keyframes_per_landmark`` keyframes in the window saw it and it triangulates with small
 reprojection error; later observations are gated by their predicted reprojection error; after
 each update landmarks whose newest observation is an outlier are culled (that observation is
-removed, no more are added). Old states and landmarks are marginalised by GTSAM's
-``IncrementalFixedLagSmoother`` (``lag_s``), so memory and cost stay bounded.
+removed, no more are added). Old states and landmarks are marginalised
+(``slam.backend.fixed_lag``, ``lag_s``), so memory and cost stay bounded.
 
 Before initialisation the back end buffers keyframes and publishes uninitialised estimates in
 the front end's VO frame; after initialisation (``slam.backend.init``) everything is in a
@@ -35,6 +35,7 @@ import gtsam
 import numpy as np
 
 from slam.backend.config import BackendConfig
+from slam.backend.fixed_lag import FixedLagSmoother
 from slam.backend.imu import (
     backend_imu_buffer,
     make_bias,
@@ -49,7 +50,7 @@ from slam.backend.init import (
     still_init_kalman,
     world_from_vo_gravity,
 )
-from slam.backend.mono_init import align_mono, refine_vo_poses
+from slam.backend.mono_init import align_mono, check_scale, refine_vo_poses
 from slam.backend.time_offset import OnlineTimeOffset
 from slam.core.calibration import Calibration
 from slam.core.errors import SlamError
@@ -136,6 +137,10 @@ class BackendStats:
     mono_init_attempts: list[dict[str, Any]] = field(default_factory=list)
     """Monocular: every alignment tried (time, keyframes, scale, its check, why rejected): the
     scale estimate's history until one is accepted."""
+    mono_scale_checks: list[dict[str, Any]] = field(default_factory=list)
+    """Monocular: the scale checks after the start (``mono_scale_check_window_s``): time,
+    scale, its standard deviation, whether counted, whether the smoother was corrected."""
+    mono_scale_corrections: int = 0
     keyframes_held_for_time_offset: int = 0
     update_times_s: list[float] = field(default_factory=list)  # wall time per add_keyframe
     update_cpu_s: list[float] = field(default_factory=list)  # this thread's CPU time per call
@@ -189,7 +194,10 @@ class VioBackend:
         self._monocular = not calibration.is_stereo
         self.last_scale = 0.0  # monocular: the start's scale tried at the latest keyframe, or 0
         self._init_keyframes: list[Keyframe] = []
-        self._smoother: gtsam.IncrementalFixedLagSmoother | None = None
+        # monocular scale check: (t_ns, world_from_body) of recent keyframes, newest estimate
+        self._kf_history: dict[int, np.ndarray] = {}
+        self._last_scale_check_ns = 0
+        self._smoother: FixedLagSmoother | None = None
         self._values = gtsam.Values()
         self._states: list[_State] = []
         self._landmarks: set[int] = set()
@@ -313,6 +321,8 @@ class VioBackend:
                 # a new VO map segment: relative VO poses across the boundary are meaningless
                 self._states[-1].world_from_body_vo = None
             est = self._add_with_recovery(kf, kf_pose_vo)
+            if self._monocular and self.config.mono_scale_check_window_s > 0:
+                est = self._check_mono_scale(kf) or est
         self._segment_id = kf.segment_id
         return est
 
@@ -469,6 +479,75 @@ class VioBackend:
         bias = make_bias(res.bias_gyro_rad_s, res.bias_accel_m_s2)
         return self._finish_init(kf, pose_w, vel_w, bias, "mono")
 
+    def _check_mono_scale(self, kf: Keyframe) -> Estimate | None:
+        """Monocular: the start's visual-inertial alignment run again on the smoother's own
+        keyframe estimates of the last ``mono_scale_check_window_s`` (metric: scale 1 if the
+        smoother's scale agrees with the IMU). A counted check (the start's checks, standard
+        deviation under ``mono_scale_check_max_std``) off by more than ``mono_scale_check_tolerance`` restarts
+        the smoother at the newest state with the alignment's velocity, the recent estimates
+        rescaled about it. Returns the new estimate when corrected."""
+        cfg = self.config
+        vals = self._values
+        for s in self._states:
+            self._kf_history[s.t_ns] = vals.atPose3(X(s.k)).matrix()
+        window_ns = int(cfg.mono_scale_check_window_s * 1e9)
+        self._kf_history = {t: p for t, p in self._kf_history.items() if t >= kf.t_ns - window_ns}
+        if kf.t_ns - self._last_scale_check_ns < int(cfg.mono_scale_check_every_s * 1e9):
+            return None
+        times = np.array(sorted(self._kf_history), dtype=np.int64)
+        if len(times) < 6 or (times[-1] - times[0]) < 0.8 * window_ns:
+            return None
+        self._last_scale_check_ns = kf.t_ns
+        poses = np.array([self._kf_history[int(t)] for t in times])
+        t, g, a = self.imu.arrays()
+        res = check_scale(
+            times,
+            poses,
+            self._body_from_cam[0],
+            t,
+            g,
+            a,
+            self.imu_calibration,
+            cfg.imu_gap_max_s,
+            cfg.mono_init_max_gravity_error,
+            cfg.mono_init_max_scale_disagreement,
+            cfg.mono_scale_check_max_std,
+            cfg.mono_scale_check_tolerance,
+        )
+        if res is None:
+            return None
+        if len(self.stats.mono_scale_checks) < 500:
+            self.stats.mono_scale_checks.append(
+                {
+                    "t_ns": kf.t_ns,
+                    "keyframes": len(times),
+                    "scale": round(res.scale, 4),
+                    "scale_std": round(res.scale_std, 4),
+                    "counted": res.counted,
+                    "corrected": res.wrong,
+                }
+            )
+        if not res.wrong:
+            return None
+        self.stats.mono_scale_corrections += 1
+        last = self._states[-1]
+        pose = vals.atPose3(X(last.k))
+        centre = pose.translation()
+        self._kf_history = {
+            tt: _scaled_about(p, res.scale, centre) for tt, p in self._kf_history.items()
+        }
+        velocity = res.velocity_m_s
+        msg = f"monocular scale check: {res.scale:.3f} at keyframe {kf.keyframe_id}, corrected"
+        log.warning(msg)
+        if len(self.stats.failures) < 100:
+            self.stats.failures.append(msg)
+        bias = vals.atConstantBias(B(last.k))
+        self._start_smoother(
+            last.k, last.keyframe_id, last.t_ns, pose, velocity, bias, last.world_from_body_vo
+        )
+        self._add_observations_as_tracks(kf, last.k)
+        return self._make_estimate()
+
     def _moving_init(self, kfs: list[Keyframe]) -> MovingInitResult | None:
         t, g, a = self.imu.arrays()
         res = moving_init(
@@ -522,9 +601,9 @@ class VioBackend:
         remove: list[int] | None = None,
     ) -> None:
         """One smoother update (a seam for tests to inject failures)."""
-        self._live_smoother().update(graph, values, cast(Any, stamps), remove or [])
+        self._live_smoother().update(graph, values, stamps, remove or [])
 
-    def _live_smoother(self) -> gtsam.IncrementalFixedLagSmoother:
+    def _live_smoother(self) -> FixedLagSmoother:
         if self._smoother is None:
             raise RuntimeError("smoother used before initialisation")
         return self._smoother
@@ -546,7 +625,7 @@ class VioBackend:
         # reuse the slots of removed/marginalised factors: otherwise the factor array grows by
         # every factor ever added (measured: +54 MB RSS over a 20-minute run)
         params.findUnusedFactorSlots = True
-        self._smoother = gtsam.IncrementalFixedLagSmoother(cfg.lag_s, params)
+        self._smoother = FixedLagSmoother(cfg.lag_s, params)
         graph = gtsam.NonlinearFactorGraph()
         sr, sp = cfg.prior_pose_sigma_rad, cfg.prior_pose_sigma_m
         graph.add(
@@ -618,6 +697,7 @@ class VioBackend:
             cfg.imu_gap_max_s,
             self.imu_calibration,
             (cfg.imu_gyro_scale_error, cfg.imu_accel_scale_error),
+            cfg.imu_accel_scale_error_of_deviation,
         )
         if pim is not None:
             pred = pim.predict(gtsam.NavState(prev_pose, prev_vel), prev_bias)
@@ -762,7 +842,10 @@ class VioBackend:
             pose_vo,
             kf,
         )
-        self.imu.trim(self._states[0].t_ns - int(1e9))
+        keep_s = 1.0
+        if self._monocular:
+            keep_s += self.config.mono_scale_check_window_s
+        self.imu.trim(self._states[0].t_ns - int(keep_s * 1e9))
 
     def _map_visual(
         self,
@@ -1087,6 +1170,13 @@ def _restamped(kf: Keyframe, offset_ns: int) -> Keyframe:
         return kf
     t_ns = kf.t_ns - kf.time_offset_ns + offset_ns
     return dataclasses.replace(kf, t_ns=t_ns, time_offset_ns=offset_ns)
+
+
+def _scaled_about(world_from_body: np.ndarray, scale: float, centre: np.ndarray) -> np.ndarray:
+    """The pose with its position scaled by ``scale`` about ``centre`` (world frame)."""
+    out = np.array(world_from_body, dtype=float)
+    out[:3, 3] = centre + scale * (out[:3, 3] - centre)
+    return out
 
 
 def _finite_pose(pose: np.ndarray | None) -> np.ndarray | None:

@@ -181,6 +181,10 @@ class EndOfStream:
 
     t_ns: int = 0
     interrupted: bool = False  # the run was stopped (Ctrl-C, SIGTERM): skip optional end work
+    run_end_began_s: float | None = None
+    """``time.perf_counter()`` when the run's end began (the front end answered its last
+    frame); end-of-run time budgets count from it. On Linux that clock is CLOCK_MONOTONIC, the
+    same in every process of the machine, so a worker process can compare it with its own."""
 
 
 @dataclass(frozen=True, eq=False)

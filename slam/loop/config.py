@@ -139,6 +139,13 @@ class LoopClosureConfig:
     time its keyframes span; past it the adjustment keeps the estimate so far (stats.json
     ``loop_closure.global_ba.time_boxed``). 0: no limit. Accuracy and time with and without:
     BENCHMARKS.md."""
+    global_ba_min_budget_share: float = bounded(0.4, ge=0, le=1)
+    """The global adjustment starts only when at least this share of its time budget is left
+    once the loop backlog is done (the budget counts from the front end's last frame). Its
+    graph and first iteration cannot be cut: about 1 s on room-aggressive on an idle machine
+    and 2-3 s beside busy processes, where, started with a sliver of the budget left, it
+    overran it by seconds (BENCHMARKS.md). Skipped, the pose graph's result stays (stats.json
+    ``loop_closure.global_ba_skipped`` says why)."""
     global_ba_fusion_budget_share: float = bounded(0.5, gt=0, le=1)
     """Share of that budget the fusion search may use; past it, it stops (having visited the
     keyframes spread over the run)."""

@@ -65,6 +65,9 @@ class _Estimator(WorkerCore):
             a = attempts[-1]
             verdict = "accepted" if a["accepted"] else f"rejected: {a['reason']}"
             events.append(f"monocular alignment: scale {a['scale']:.3f} m per VO unit, {verdict}")
+        checks = self.backend.stats.mono_scale_checks
+        if checks and checks[-1]["t_ns"] == kf.t_ns and checks[-1]["corrected"]:
+            events.append(f"monocular scale check: {checks[-1]['scale']:.3f}, smoother corrected")
         resets = self.backend.stats.resets
         if resets > self.resets_seen:
             events.append(f"back end reset ({resets} so far)")
@@ -94,6 +97,8 @@ class _Estimator(WorkerCore):
         out["failures"] = list(getattr(s, "failures", []))[:20]
         if s.mono_init_attempts:
             out["mono_init_attempts"] = list(s.mono_init_attempts)
+        if s.mono_scale_checks:
+            out["mono_scale_checks"] = list(s.mono_scale_checks)
         if self.backend.time_offset is not None:
             out["time_offset"] = self.backend.time_offset.summary()
         imu_stats = getattr(self.backend.imu, "stats", None)

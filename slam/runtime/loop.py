@@ -93,17 +93,21 @@ class LoopCore(WorkerCore):
         ]
 
     def finish(self, interrupted: bool) -> LoopFinal:
-        """The global adjustment (skipped when the run was interrupted; its time budget less
-        what the end of the run has already taken), then the state."""
+        """The global adjustment (skipped when the run was interrupted or the end of the run
+        has already taken most of its time budget; else given what is left of it), then the
+        state."""
         closer = self.closer
         spent_s = 0.0 if self.end_began_s is None else time.perf_counter() - self.end_began_s
         budget_s = closer.global_adjustment_budget_s()
         skipped = None
         if interrupted:
             skipped = "run interrupted"
-        elif budget_s is not None and spent_s >= budget_s:
-            # The backlog (a worker behind on a busy machine) used the whole budget: one more
-            # iteration would take seconds there. The pose graph's result stays.
+        elif (
+            budget_s is not None
+            and budget_s - spent_s < closer.cfg.global_ba_min_budget_share * budget_s
+        ):
+            # The backlog (a worker behind on a busy machine) used most of the budget: the
+            # adjustment's first iteration alone would overrun it by seconds there.
             skipped = f"the loop backlog used its time budget ({spent_s:.1f} of {budget_s:.1f} s)"
         ba = None if skipped else closer.global_adjustment(spent_s)
         summary = dict(closer.stats.summary())

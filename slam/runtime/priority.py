@@ -6,11 +6,13 @@ starve; the back end must stay fresh; loop closure and the mapper only have to k
 average. Why these numbers, measured beside busy processes: BENCHMARKS.md ("Priorities").
 
 A process can only lower its own priority without privileges, never raise it back, so the
-scheme is fixed at start. ``SCHED_IDLE`` is never used by default: a SCHED_IDLE process gets
-*no* CPU while normal-priority work keeps every core busy (measured: a real-time run beside
-two busy processes processed 21 s of a 115 s sequence in 827 s, its SCHED_IDLE reader
-starved). ``player.idle_workers: true`` restores it for the background workers on a machine
-that is known to be otherwise idle.
+scheme is fixed at start. ``SCHED_IDLE`` gets almost no CPU while normal-priority work keeps
+every core busy (measured: a real-time run beside two busy processes processed 21 s of a 115 s
+sequence in 827 s, its SCHED_IDLE reader starved), so by default only the mapper's live work
+uses it (``mapping.idle_worker``: what it does not fuse live is caught up at the end, and a
+core running only SCHED_IDLE work counts as idle to a waking front end);
+``player.idle_workers: true`` puts the loop worker under it too, on a machine that is known to
+be otherwise idle.
 """
 
 from __future__ import annotations

@@ -81,10 +81,11 @@ def _trajectories(p: Pipeline) -> tuple[Trajectory, Trajectory, Trajectory | Non
     return traj, kfs, closed
 
 
-def _end_stage(stage: Stage, control: RunControl) -> float:
-    """Close ``stage`` and wait for it (until ``control.abandon``); the seconds it took."""
+def _end_stage(stage: Stage, control: RunControl, began_s: float | None = None) -> float:
+    """Close ``stage`` and wait for it (until ``control.abandon``); the seconds it took.
+    ``began_s``: when the run's end began (``EndOfStream.run_end_began_s``)."""
     t0 = time.perf_counter()
-    stage.close()
+    stage.close(end_began_s=began_s)
     while not stage.join(timeout=0.2):
         if control.abandon.is_set():
             stage.abort()
@@ -219,7 +220,7 @@ class Run:
         if p.loop is not None:
             if progress and not interrupted:
                 print("loop closure: global adjustment ...", flush=True)
-            times.parts_s["loop"] = _end_stage(p.loop, control)
+            times.parts_s["loop"] = _end_stage(p.loop, control, times.tracking_end)
         traj, kfs, closed = _trajectories(p)
         if p.mapper is not None:
             t0 = time.perf_counter()

@@ -56,6 +56,7 @@ class Stage(ABC):
         self.ended = threading.Event()
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
+        self.end_began_s: float | None = None  # EndOfStream.run_end_began_s, once it arrived
 
     # -- to implement ------------------------------------------------------------------------
     @abstractmethod
@@ -91,6 +92,7 @@ class Stage(ABC):
             return False
         if not self.threaded:
             if isinstance(msg, EndOfStream):
+                self.end_began_s = msg.run_end_began_s
                 self._finish()
             else:
                 self._handle(msg)
@@ -102,17 +104,18 @@ class Stage(ABC):
             self.dropped += 1
             return False
 
-    def close(self, timeout_s: float | None = None) -> bool:
+    def close(self, timeout_s: float | None = None, end_began_s: float | None = None) -> bool:
         """Signal end of input (the sentinel gets through a full queue as the stage drains it;
-        ``timeout_s``: give up after that long, e.g. for a viewer stuck in a call). False when
-        it gave up."""
+        ``timeout_s``: give up after that long, e.g. for a viewer stuck in a call;
+        ``end_began_s``: ``EndOfStream.run_end_began_s``). False when it gave up."""
         if not self.threaded:
+            self.end_began_s = end_began_s
             self._finish()
             return True
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while self._thread is not None and self._thread.is_alive():
             try:
-                self.queue.put(EndOfStream(), timeout=0.1)
+                self.queue.put(EndOfStream(run_end_began_s=end_began_s), timeout=0.1)
                 return True
             except queue.Full:
                 if deadline is not None and time.monotonic() > deadline:
@@ -159,6 +162,7 @@ class Stage(ABC):
         while True:
             msg = self.queue.get()
             if isinstance(msg, EndOfStream):
+                self.end_began_s = msg.run_end_began_s
                 break
             if self._stop.is_set() or self.error is not None:
                 continue  # drain without work until the sentinel

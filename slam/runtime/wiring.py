@@ -118,7 +118,11 @@ def build(seq: Sequence, cfg: SlamConfig, session: ViewerSession | None) -> Pipe
         p.imu_consumers.append(p.backend)
     if cfg.mapping.enabled:
         p.mapper = MapperStage(
-            seq.calibration, cfg.mapping, threaded, idle, live_mesh=viewer is not None
+            seq.calibration,
+            cfg.mapping,
+            threaded,
+            idle or cfg.mapping.idle_worker,
+            live_mesh=viewer is not None,
         )
 
     fe = p.frontend

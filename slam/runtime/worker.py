@@ -35,9 +35,10 @@ class WorkerCore(ABC):
     """The part of a stage that may run in a worker process: messages in, outputs out."""
 
     end_began_s: float | None = None
-    """``time.perf_counter()`` when the run's end began in the worker process (set before
-    the backlog is drained), so :meth:`finish` can count the backlog against a time budget.
-    None inline."""
+    """``time.perf_counter()`` when the run's end began: the front end's last frame
+    (``EndOfStream.run_end_began_s``), else when the worker was told to end, so :meth:`finish`
+    counts the backlog (the stage's queue and the worker's) against a time budget. None
+    when nobody said."""
 
     @abstractmethod
     def handle(self, msg: Any) -> list[Any]:
@@ -107,6 +108,8 @@ def _worker_main(
         """Handle one message; True when the worker's input is over (or it failed)."""
         if isinstance(msg, EndOfStream):
             ended.append(msg.interrupted)
+            if msg.run_end_began_s is not None and core.end_began_s is not None:
+                core.end_began_s = min(core.end_began_s, msg.run_end_began_s)
             return True
         if hurry.is_set():
             return False
@@ -233,16 +236,23 @@ class WorkerProcess:
     def is_alive(self) -> bool:
         return self.proc.is_alive()
 
-    def stop(self, interrupted: bool, timeout_s: float, abandon: threading.Event | None) -> bool:
+    def stop(
+        self,
+        interrupted: bool,
+        timeout_s: float,
+        abandon: threading.Event | None,
+        end_began_s: float | None = None,
+    ) -> bool:
         """End of input: wait up to ``timeout_s`` (or until ``abandon`` is set) for the worker's
-        last output, then end the process. False when it had to be terminated."""
+        last output, then end the process. False when it had to be terminated.
+        ``end_began_s``: ``EndOfStream.run_end_began_s``."""
         if self.pid is None:  # never waited for: nothing of it was used
             self.terminate()
             return False
         if interrupted:
             self.hurry.set()
         self.begin_end()
-        self.inbox.put(EndOfStream(interrupted=interrupted))
+        self.inbox.put(EndOfStream(interrupted=interrupted, run_end_began_s=end_began_s))
         deadline = time.monotonic() + timeout_s
         while self.receiver.is_alive() and time.monotonic() < deadline:
             if abandon is not None and abandon.is_set():
@@ -360,10 +370,11 @@ class ProcessStage(Stage):
             return
         if self._proc is None:
             assert self._core is not None
+            self._core.end_began_s = self.end_began_s
             self._on_item(WorkerFinal(self._core.finish(self.interrupted)))
             return
         timeout = self.end_timeout_s
-        if not self._proc.stop(self.interrupted, timeout, self.abandon):
+        if not self._proc.stop(self.interrupted, timeout, self.abandon, self.end_began_s):
             self.timed_out = True
             if self.error is None and not self.interrupted:
                 self.error = StageError(
