@@ -44,7 +44,9 @@ CONDITIONS: dict[str, tuple[int, str]] = {
 }
 """Condition -> (busy processes, --speed)."""
 
-SPIN = "while True:\n    pass\n"
+SPIN = "import os\nparent = os.getppid()\nwhile os.getppid() == parent:\n    for _ in range(200_000):\n        pass\n"
+"""A busy loop that ends when this tool does (re-parented: the tool was killed, even by SIGKILL,
+which skips ``stop_busy``; left spinning, they skewed every later measurement)."""
 
 
 def start_busy(n: int) -> list[subprocess.Popen[bytes]]:
