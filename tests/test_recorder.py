@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+from conftest import tracking_result
 
 from slam.core.geometry import so3_exp_batch
-from slam.core.messages import FrontendCorrection, TrackingResult
+from slam.core.messages import FrontendCorrection
 from slam.runtime.recorder import Recorder
 
 
@@ -14,23 +15,6 @@ def _pose(rotvec: np.ndarray, t: np.ndarray) -> np.ndarray:
     pose[:3, :3] = so3_exp_batch(np.asarray(rotvec, float)[None])[0]
     pose[:3, 3] = t
     return pose
-
-
-def _result(k: int, pose: np.ndarray) -> TrackingResult:
-    return TrackingResult(
-        t_ns=k * 50_000_000,
-        frame_index=k,
-        state="tracking",
-        segment_id=0,
-        world_from_body=pose,
-        is_keyframe=False,
-        keyframe_id=-1,
-        num_tracked=0,
-        num_inliers=0,
-        feature_pixels=np.zeros((0, 2)),
-        feature_ages=np.zeros(0),
-        latency_ms=1.0,
-    )
 
 
 def test_continuous_odometry_undoes_the_front_ends_corrections() -> None:
@@ -47,7 +31,7 @@ def test_continuous_odometry_undoes_the_front_ends_corrections() -> None:
     }
     rec = Recorder(0)
     assert rec.continuous_odometry(0).shape == (0, 4, 4)
-    rec.put(_result(0, truth[0]))
+    rec.put(tracking_result(0, truth[0], frame_index=0))
     np.testing.assert_array_equal(rec.continuous_odometry(1), truth[0][None])  # no correction yet
     rec = Recorder(0)
     world = np.eye(4)  # the front end's world from the true one
@@ -58,7 +42,7 @@ def test_continuous_odometry_undoes_the_front_ends_corrections() -> None:
         if k in changes:
             rec.put(FrontendCorrection(k * 50_000_000, changes[k], False))
             world = changes[k] @ world
-        rec.put(_result(k, world @ pose))
+        rec.put(tracking_result(k * 50_000_000, world @ pose, frame_index=k))
     chain = rec.continuous_odometry(len(truth))
     np.testing.assert_allclose(chain, np.array([reframe @ p for p in truth]), atol=1e-12)
     np.testing.assert_allclose(rec.continuous_odometry(6), chain[:6], atol=0)
