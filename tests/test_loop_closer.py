@@ -3,6 +3,8 @@ corrects the trajectory; aliased places, implausible loops and false constraints
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -366,3 +368,33 @@ def test_covisibility_edge_fits_the_relative_pose_of_a_map_reuse(loop_scene, voc
     closer.add_loop_constraint(2, 0, true_rel)
     req = closer.pgo_request()
     assert any((e.from_id, e.to_id) == (0, 2) for e in req.odometry_edges)
+
+
+def test_adjustment_offers_the_pose_graph_result_as_a_fallback_first() -> None:
+    """In a worker process the loop core sends its state without the global adjustment before
+    the adjustment starts, to be used from the budget's end plus ``global_ba_grace_s``; the
+    fallback's summary says the adjustment was stopped. None is offered when the adjustment
+    is skipped anyway or has no budget."""
+    import time
+
+    from datasets.rigs import euroc_like_calibration
+    from slam.runtime.loop import LoopCore
+
+    cfg = LoopClosureConfig(global_ba_budget_fraction=0.1, global_ba_grace_s=0.7)
+    core = LoopCore(euroc_like_calibration(), cfg)
+    core.closer.t_ns_of.update({0: 0, 1: 20_000_000_000})  # 2 s budget
+    offered: list[tuple[Any, float]] = []
+    core.offer_fallback = lambda payload, use_after_s: offered.append((payload, use_after_s))
+    began_s = time.perf_counter() - 0.5
+    core.end_began_s = began_s
+    final = core.finish(interrupted=False)
+    assert final.stats["global_ba_skipped"] is None
+    ((fallback, use_after_s),) = offered
+    assert use_after_s == pytest.approx(began_s + 2.0 + 0.7, abs=1e-3)
+    assert fallback.stats["global_ba_skipped"].startswith("stopped: not done within its time")
+    assert fallback.stats["global_ba"] is None
+    offered.clear()
+    core.end_began_s = time.perf_counter() - 3.0  # the backlog used the budget: skipped
+    core.finish(interrupted=False)
+    core.finish(interrupted=True)
+    assert offered == []

@@ -201,6 +201,11 @@ def print_summary(s: dict, out: Path) -> None:
     )
     if end is not None:
         print(f"end of run: {end:.1f} s" + (f" ({parts})" if parts else ""))
+    loop = s.get("loop_closure") or {}
+    if loop.get("global_ba_skipped"):
+        print(f"global adjustment: {loop['global_ba_skipped']} (the pose graph's result is kept)")
+    elif (loop.get("global_ba") or {}).get("time_boxed"):
+        print("global adjustment: time-boxed (its estimate when its time budget ran out)")
     print(f"peak memory of the process tree: {s['peak_rss_mb']:.0f} MB")
     print(f"outputs in {out}/ (trajectory.tum, trajectory.csv, keyframes.tum, stats.json)")
     frames = max(s["frames_in"], 1)

@@ -304,6 +304,17 @@ class WorkerFinal:
     payload: Any
 
 
+@dataclass(frozen=True, eq=False)
+class WorkerFallback:
+    """A final payload without the optional end work that follows it (the loop closer's global
+    adjustment), sent before that work starts: the stage ends with it, and the worker is
+    stopped, if the :class:`WorkerFinal` has not come by ``use_after_s`` (``time.perf_counter``,
+    CLOCK_MONOTONIC on Linux: the same clock in every process)."""
+
+    payload: Any
+    use_after_s: float
+
+
 # -- stage payloads --------------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
 class FrontendCorrection:

@@ -139,6 +139,11 @@ class LoopClosureConfig:
     time its keyframes span; past it the adjustment keeps the estimate so far (stats.json
     ``loop_closure.global_ba.time_boxed``). 0: no limit. Accuracy and time with and without:
     BENCHMARKS.md."""
+    global_ba_grace_s: float = bounded(1.0, ge=0, le=600)
+    """In concurrent runs, how long past its time budget the end of the run waits for the
+    global adjustment before it stops it and keeps the pose graph's result (stats.json
+    ``loop_closure.global_ba_skipped`` says so). Its iterations keep to the budget; its graph
+    and first iteration cannot be cut: on a busy machine they overran it by up to 3.2 s."""
     global_ba_min_budget_share: float = bounded(0.4, ge=0, le=1)
     """The global adjustment starts only when at least this share of its time budget is left
     once the loop backlog is done (the budget counts from the front end's last frame). Its

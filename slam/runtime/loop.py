@@ -22,7 +22,7 @@ import dataclasses
 import logging
 import threading
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -45,6 +45,9 @@ from slam.loop.store import KeyframeStore
 from slam.loop.vocabulary import load_default_vocabulary
 from slam.runtime.stage import Latest
 from slam.runtime.worker import ProcessStage, WorkerCore
+
+if TYPE_CHECKING:
+    from slam.loop.global_ba import GlobalBaResult
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +98,9 @@ class LoopCore(WorkerCore):
     def finish(self, interrupted: bool) -> LoopFinal:
         """The global adjustment (skipped when the run was interrupted or the end of the run
         has already taken most of its time budget; else given what is left of it), then the
-        state."""
+        state. In a worker process the state without the adjustment goes first, as a fallback
+        the stage ends with if the adjustment overruns its budget by ``global_ba_grace_s``
+        (its graph and first iteration cannot be cut)."""
         closer = self.closer
         spent_s = 0.0 if self.end_began_s is None else time.perf_counter() - self.end_began_s
         budget_s = closer.global_adjustment_budget_s()
@@ -109,7 +114,17 @@ class LoopCore(WorkerCore):
             # The backlog (a worker behind on a busy machine) used most of the budget: the
             # adjustment's first iteration alone would overrun it by seconds there.
             skipped = f"the loop backlog used its time budget ({spent_s:.1f} of {budget_s:.1f} s)"
+        if skipped is None and budget_s is not None and self.offer_fallback is not None:
+            began_s = time.perf_counter() - spent_s
+            self.offer_fallback(
+                self._final(None, f"stopped: not done within its time budget ({budget_s:.1f} s)"),
+                began_s + budget_s + closer.cfg.global_ba_grace_s,
+            )
         ba = None if skipped else closer.global_adjustment(spent_s)
+        return self._final(ba, skipped)
+
+    def _final(self, ba: GlobalBaResult | None, skipped: str | None) -> LoopFinal:
+        closer = self.closer
         summary = dict(closer.stats.summary())
         summary["global_ba"] = None if ba is None else ba.summary()
         summary["global_ba_skipped"] = skipped

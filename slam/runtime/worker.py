@@ -6,11 +6,14 @@ concurrent runs (threads are running, so no fork), and inline in sequential runs
 either way. One typed protocol (``slam.core.messages``): the worker sends :class:`WorkerReady` once
 it can work, any outputs, and after :class:`EndOfStream` a :class:`WorkerFinal` with what the
 stage returns at the end, or :class:`WorkerFailed` and ends. A worker that ends without either
-died: that is an error of its own.
+died: that is an error of its own. Before end work that may overrun its time budget (the
+global adjustment: its first iteration cannot be cut), a worker can send a
+:class:`WorkerFallback`: the stage stops waiting for it at its time and ends with that.
 """
 
 from __future__ import annotations
 
+import copy
 import multiprocessing as mp
 import os
 import queue
@@ -21,7 +24,13 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 from typing import Any
 
-from slam.core.messages import EndOfStream, WorkerFailed, WorkerFinal, WorkerReady
+from slam.core.messages import (
+    EndOfStream,
+    WorkerFailed,
+    WorkerFallback,
+    WorkerFinal,
+    WorkerReady,
+)
 from slam.runtime.priority import apply_role, ignore_stop_signals
 from slam.runtime.stage import Stage, StageError
 
@@ -39,6 +48,10 @@ class WorkerCore(ABC):
     (``EndOfStream.run_end_began_s``), else when the worker was told to end, so :meth:`finish`
     counts the backlog (the stage's queue and the worker's) against a time budget. None
     when nobody said."""
+
+    offer_fallback: Callable[[Any, float], None] | None = None
+    """Set in a worker process (None inline): ``offer_fallback(payload, use_after_s)`` sends a
+    :class:`WorkerFallback` from :meth:`finish`, before work that may overrun its time."""
 
     @abstractmethod
     def handle(self, msg: Any) -> list[Any]:
@@ -149,6 +162,13 @@ def _worker_main(
         step(receive(inbox))
     if failed:
         return
+
+    def offer_fallback(payload: Any, use_after_s: float) -> None:
+        # A copy: the queue pickles in its feeder thread, after the work that follows has
+        # begun changing the core's state.
+        outbox.put(WorkerFallback(copy.deepcopy(payload), use_after_s))
+
+    core.offer_fallback = offer_fallback
     try:
         final = core.finish(ended[0] or hurry.is_set())
     except Exception as exc:
@@ -242,10 +262,11 @@ class WorkerProcess:
         timeout_s: float,
         abandon: threading.Event | None,
         end_began_s: float | None = None,
+        give_up: Callable[[], bool] | None = None,
     ) -> bool:
-        """End of input: wait up to ``timeout_s`` (or until ``abandon`` is set) for the worker's
-        last output, then end the process. False when it had to be terminated.
-        ``end_began_s``: ``EndOfStream.run_end_began_s``."""
+        """End of input: wait up to ``timeout_s`` (or until ``abandon`` is set, or ``give_up()``
+        says so) for the worker's last output, then end the process. False when it had to be
+        terminated. ``end_began_s``: ``EndOfStream.run_end_began_s``."""
         if self.pid is None:  # never waited for: nothing of it was used
             self.terminate()
             return False
@@ -257,6 +278,8 @@ class WorkerProcess:
         while self.receiver.is_alive() and time.monotonic() < deadline:
             if abandon is not None and abandon.is_set():
                 break
+            if give_up is not None and give_up():
+                break
             self.receiver.join(timeout=0.1)
         finished = not self.receiver.is_alive()
         if finished:
@@ -265,8 +288,10 @@ class WorkerProcess:
         return finished
 
     def terminate(self) -> None:
+        """End the process now (SIGKILL: a worker ignores SIGTERM, see
+        :func:`slam.runtime.priority.ignore_stop_signals`)."""
         if self.proc.is_alive():
-            self.proc.terminate()
+            self.proc.kill()
             self.proc.join(timeout=2)
         # Nobody will read what is still buffered for a dead worker: without this, the inbox's
         # feeder thread blocks the interpreter's exit on a full pipe (seen after a worker
@@ -301,6 +326,10 @@ class ProcessStage(Stage):
         self.use_process = threaded and in_process
         self.final_seen = threading.Event()
         self.timed_out = False
+        self.fallback: WorkerFallback | None = None
+        self.fallback_used = False  # the worker was stopped and the stage ended with it
+        self._stopped_for_fallback = False
+        self._final_lock = threading.Lock()  # one final: the worker's or the fallback
         self.worker_pid: int | None = None
         self._proc: WorkerProcess | None = None
         self._core: WorkerCore | None = None
@@ -341,13 +370,20 @@ class ProcessStage(Stage):
             self.final_seen.set()
             return True
         if isinstance(item, WorkerFinal):
-            self.on_final(item.payload)
-            self.final_seen.set()
+            with self._final_lock:
+                if not self.final_seen.is_set():
+                    self.on_final(item.payload)
+                    self.final_seen.set()
             return True
+        if isinstance(item, WorkerFallback):
+            self.fallback = item
+            return False
         self.on_output(item)
         return False
 
     def _on_died(self, exit_code: int | None) -> None:
+        if self._stopped_for_fallback:
+            return  # stopped on purpose: :meth:`end_worker` ends the stage with the fallback
         if not self.final_seen.is_set() and self.error is None:
             self.error = StageError(
                 self.name,
@@ -374,7 +410,17 @@ class ProcessStage(Stage):
             self._on_item(WorkerFinal(self._core.finish(self.interrupted)))
             return
         timeout = self.end_timeout_s
-        if not self._proc.stop(self.interrupted, timeout, self.abandon, self.end_began_s):
+        if not self._proc.stop(
+            self.interrupted, timeout, self.abandon, self.end_began_s, self._fallback_due
+        ):
+            with self._final_lock:
+                if self.final_seen.is_set():  # it came as the worker was stopped
+                    return
+                if self.fallback is not None:
+                    self.on_final(self.fallback.payload)
+                    self.fallback_used = True
+                    self.final_seen.set()
+                    return
             self.timed_out = True
             if self.error is None and not self.interrupted:
                 self.error = StageError(
@@ -383,6 +429,12 @@ class ProcessStage(Stage):
                     "",
                 )
         self.final_seen.set()
+
+    def _fallback_due(self) -> bool:
+        """Stop waiting for the worker's final: its fallback's time has passed."""
+        due = self.fallback is not None and time.perf_counter() > self.fallback.use_after_s
+        self._stopped_for_fallback |= due
+        return due
 
     def abort(self) -> None:
         super().abort()
