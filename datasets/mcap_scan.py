@@ -514,6 +514,7 @@ class ChunkCache:
                 f"corrupt chunk at byte {ref.data_offset} skipped ({type(exc).__name__}: {exc}); "
                 f"messages logged {ref.start_ns * 1e-9:.3f}-{ref.end_ns * 1e-9:.3f} s are lost"
             ) from exc
+        self._release(ref.data_offset, ref.data_length)
         self._cache[index] = data
         while len(self._cache) > self.max_chunks:
             self._cache.popitem(last=False)
@@ -521,6 +522,16 @@ class ChunkCache:
 
     def drop(self, index: int) -> None:
         self._cache.pop(index, None)
+
+    def _release(self, offset: int, length: int) -> None:
+        """Unmap the file pages of bytes already copied out (a decompressed chunk). A file
+        mapping keeps every page it touched in the process, counted in its resident memory:
+        reading a 1.5 GB recording from start to end took the reader process to 1.55 GB.
+        The pages stay in the page cache; the kernel maps them again if they are read."""
+        if self._map is None or not hasattr(mmap, "MADV_DONTNEED"):
+            return
+        start = offset - offset % mmap.PAGESIZE
+        self._map.madvise(mmap.MADV_DONTNEED, start, offset + length - start)
 
     def payload(self, msg: int) -> memoryview:
         """The payload of message number ``msg`` (file order), without copying a chunk."""

@@ -193,3 +193,32 @@ def test_other_chunk_compressions(tmp_path: Path, compression: str) -> None:
     for a, b in zip(back.iter_frames(), seq.iter_frames(), strict=True):
         assert np.array_equal(a.left, b.left) and np.array_equal(a.right, b.right)
     np.testing.assert_array_equal(back.imu().accel_m_s2, seq.imu().accel_m_s2)
+
+
+def _resident_kb_of(path: Path) -> int:
+    """Resident kB of this process's mappings of ``path`` (``/proc/self/smaps``)."""
+    total, inside = 0, False
+    for line in Path("/proc/self/smaps").read_text().splitlines():
+        head = line.split()
+        if head and "-" in head[0] and not head[0].endswith(":"):  # a mapping's first line
+            inside = line.endswith(str(path))
+        elif inside and line.startswith("Rss:"):
+            total += int(head[1])
+    return total
+
+
+@pytest.mark.skipif(not Path("/proc/self/smaps").exists(), reason="needs Linux /proc")
+def test_reading_a_recording_does_not_keep_its_file_pages(tmp_path: Path) -> None:
+    """Frames read leave their pages of the recording out of the process's resident memory
+    (they stayed: a reader process grew as large as the file it read)."""
+    seq = random_sequence(num_frames=60, width=640, height=480, seed=5)  # noise: no compression
+    path = tmp_path / "big.mcap"
+    write_sequence_mcap(seq, path, progress=False, compression="none")
+    size_kb = path.stat().st_size // 1024
+    assert size_kb > 30_000
+    frames = McapSequence(path).iter_frames()
+    for _ in range(45):  # three quarters of the file read; still mapped
+        next(frames)
+    resident_kb = _resident_kb_of(path)
+    frames.close()
+    assert resident_kb < 0.05 * size_kb, (resident_kb, size_kb)
