@@ -170,6 +170,8 @@ def test_memory_counts_the_whole_process_tree(seq_path, tmp_path):
     per = mem["per_process_peak_mb"]
     roles = {name.split(" (")[0] for name in per}
     assert {"main", "backend", "loop"} <= roles, per  # the stereo-inertial preset's workers
+    if sys.platform == "linux":  # the reader names itself (/proc/PID/comm)
+        assert "slam-reader" in roles, per
     assert mem["total_peak_mb"] >= max(per.values())
     assert mem["sum_of_process_peaks_mb"] >= mem["total_peak_mb"] - 1.0
     assert stats["peak_rss_mb"] == mem["total_peak_mb"]

@@ -30,7 +30,7 @@ import numpy as np
 from datasets.sequence import Sequence
 from slam.core.messages import ImuBatch, ImuSample, ReaderBundle, ReaderEnd, StereoFrame
 from slam.runtime.priority import apply_role, ignore_stop_signals
-from slam.runtime.worker import main_process_gone
+from slam.runtime.worker import main_process_gone, name_this_process
 
 
 def _slot_bytes(seq: Sequence) -> int:
@@ -68,6 +68,7 @@ def _reader(
     round robin; ``free`` counts the slots the consumer has emptied.
     """
     ignore_stop_signals()
+    name_this_process("slam-reader")
     apply_role("reader", idle)
 
     def wait_for_parent(step: Any) -> Any:
