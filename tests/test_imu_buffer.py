@@ -90,3 +90,55 @@ def test_dead_reckoning_matches_the_per_sample_recurrence_and_constant_accelerat
     assert out is not None
     np.testing.assert_allclose(out[0][:3, 3], [0.25, 0.0, 0.0], atol=1e-12)
     np.testing.assert_allclose(out[1], [0.5, 0.0, 0.0], atol=1e-12)
+
+
+def _messy_batches(seed: int) -> list[list[ImuSample]]:
+    """Batches of samples with every problem the buffer checks: NaNs, saturation, repeated and
+    late stamps, gaps."""
+    rng = np.random.default_rng(seed)
+    t, batches = 1_000_000_000, []
+    for _ in range(30):
+        batch = []
+        for _ in range(int(rng.integers(0, 15))):
+            r = rng.random()
+            step = 5_000_000 if r > 0.1 else int(rng.choice([0, -7_000_000, 80_000_000]))
+            t += step
+            gyro = rng.normal(0, 1, 3)
+            accel = rng.normal(0, 5, 3) + [0, 0, 9.81]
+            if rng.random() < 0.05:
+                gyro[int(rng.integers(3))] = np.nan
+            if rng.random() < 0.05:
+                accel[int(rng.integers(3))] = 200.0
+            batch.append(ImuSample(t, gyro, accel))
+        batches.append(batch)
+    return batches
+
+
+def test_batch_checks_keep_and_count_what_sample_by_sample_checks_do():
+    """``extend`` (numpy over a batch) keeps the same samples, in the same order, with the same
+    counts and warnings as ``add`` one sample at a time, from an empty buffer and across
+    batches."""
+    for seed in range(5):
+
+        def buffer() -> ImuBuffer:
+            return ImuBuffer(
+                keep_ns=None,
+                max_gyro_rad_s=3.0,
+                max_accel_m_s2=60.0,
+                gap_warn_ns=50_000_000,
+                log_problems=True,
+            )
+
+        one, many = buffer(), buffer()
+        for batch in _messy_batches(seed):
+            kept_one = sum(one.add(s) for s in batch)
+            assert many.extend(batch) == kept_one
+        t1, g1, a1 = one.arrays()
+        t2, g2, a2 = many.arrays()
+        np.testing.assert_array_equal(t1, t2)
+        np.testing.assert_array_equal(g1, g2)
+        np.testing.assert_array_equal(a1, a2)
+        assert one.stats == many.stats
+        s = one.stats
+        assert min(s.rejected_nonfinite, s.rejected_saturated, s.rejected_out_of_order) > 0
+        assert s.gaps_warned > 0 and len(s.messages) == 4  # the first of each kind

@@ -98,12 +98,11 @@ def play(
     def flush_imu() -> None:
         if not imu_pending:
             return
+        batch = ImuBatch.from_samples(imu_pending)
         if imu_buffer is not None:
-            imu_buffer.extend(imu_pending)
-        if imu_consumers:
-            batch = ImuBatch.from_samples(imu_pending)
-            for consumer in imu_consumers:
-                consumer.put(batch)
+            imu_buffer.extend_batch(batch)
+        for consumer in imu_consumers:
+            consumer.put(batch)
         imu_pending.clear()
 
     last_flush = time.perf_counter()

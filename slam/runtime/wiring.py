@@ -204,6 +204,11 @@ def _run(
         sys.setswitchinterval(cfg.player.gil_switch_interval_ms * 1e-3)  # restored at the end
     for s in p.stages:
         s.start()
+    # The output flushes convert rotations with scipy: imported lazily, its first import took
+    # the GIL for a few hundred ms at the first flush, 5 s into the run, while the front end
+    # waited. Import it while the workers start up instead.
+    import scipy.spatial.transform  # noqa: F401
+
     run = Run(p, seq, cfg, out_dir, control, memory)
     total = (
         seq.num_frames if not cfg.player.max_frames else min(cfg.player.max_frames, seq.num_frames)
