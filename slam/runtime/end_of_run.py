@@ -1,6 +1,7 @@
 """The end of a run: the trajectories that are known only once the stages have ended.
 
-- the keyframe trajectory: the back end's optimised keyframe poses where it has them;
+- the keyframe trajectory: the back end's optimised keyframe poses where it has them (later
+  keyframes follow its last by the front end's motion);
 - the loop-closed trajectory: every output frame moved by its keyframes' corrections;
 - the final keyframe poses the mapper re-integrates its keyframes at.
 """
@@ -23,11 +24,23 @@ from slam.runtime.recorder import Recorder
 def keyframe_trajectory(
     frontend_kfs: Trajectory, backend: BackendStage | None, recorder: Recorder
 ) -> Trajectory:
-    """Back-end (optimised) keyframe poses where there are any, else the front end's."""
+    """Back-end (optimised) keyframe poses where there are any, else the front end's.
+
+    Keyframes after the back end's last estimate follow it by the front end's motion: an
+    interrupted run skips the back end's backlog, and a run stopped just after a late
+    initialisation wrote one keyframe of its 15 (the front end's other 14 were lost)."""
     if backend is None or not backend.keyframe_poses:
         return frontend_kfs
     times = recorder.keyframe_times_copy()
-    poses = sorted((times[k], p) for k, p in dict(backend.keyframe_poses).items() if k in times)
+    estimated = {k: p for k, p in dict(backend.keyframe_poses).items() if k in times}
+    poses = sorted((times[k], p) for k, p in estimated.items())
+    if estimated:
+        last = max(estimated)
+        front = dict(zip(frontend_kfs.t_ns.tolist(), frontend_kfs.matrices(), strict=True))
+        later = sorted(times[k] for k in times if k > last and times[k] in front)
+        if later and times[last] in front:
+            map_from_front = estimated[last] @ invert_transform(front[times[last]])
+            poses += [(t, map_from_front @ front[t]) for t in later]
     return trajectory_from_poses(poses)
 
 
