@@ -287,6 +287,7 @@ PRESETS: dict[str, dict[str, Any]] = {
             "map_landmarks": False,
             "min_keyframes_per_landmark": 3,
             "imu_accel_scale_error_of_deviation": True,
+            "imu_accel_density_factor": 2.0,
             "mono_scale_check_window_s": 5.0,
         },
         # the monocular front end's KLT has no predicted start: its backward check as measured
