@@ -281,7 +281,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         # the accelerometer's scale-error noise of the reading's deviation, not of gravity
         # (with gravity's, room-figure8's scale ran away: Sim(3) 0.82 -> 1.024), and the
         # smoother's scale checked against the IMU every second; a 2 s lag (room-figure8's
-        # Sim(3) scale 1.024 -> 1.006; BENCHMARKS.md)
+        # Sim(3) scale 1.024 -> 1.006; BENCHMARKS.md); the accelerometer's calibrated density x2
+        # (at x1 the hall's window hit "Indeterminate linear system": 4 back-end resets -> 0)
         "backend": {
             "lag_s": 2.0,
             "map_landmarks": False,
