@@ -197,7 +197,7 @@ def test_scale_error_noise_covers_a_gyro_scale_error():
 def test_accel_density_factor_scales_the_calibrated_accelerometer_noise():
     """Under ``accel_error_of_deviation`` a constant specific force adds nothing to the
     accelerometer's noise: the density is the calibration's times ``accel_density_factor``
-    (the monocular preset's 2), and a factor of 1 leaves the calibration's exactly."""
+    (the monocular preset's 3), and a factor of 1 leaves the calibration's exactly."""
     from slam.backend.imu import scale_error_params
     from slam.config import preset_config
 
@@ -212,7 +212,7 @@ def test_accel_density_factor_scales_the_calibrated_accelerometer_noise():
     one = scale_error_params(imu, pieces, 0.005, 0.005, True, 1.0)
     np.testing.assert_array_equal(one.getAccelerometerCovariance(), base)
     factor = preset_config("euroc-mono-imu").backend.imu_accel_density_factor
-    assert factor == 2.0
+    assert factor == 3.0
     two = scale_error_params(imu, pieces, 0.005, 0.005, True, factor)
     np.testing.assert_allclose(two.getAccelerometerCovariance(), base * factor**2, rtol=1e-12)
     # the gyro's noise is not touched by it

@@ -169,7 +169,7 @@ def scale_error_params(
     whole-reading term left the scale to the visual factors; BENCHMARKS.md).
 
     ``accel_density_factor``: the calibration's accelerometer density is first multiplied by
-    this (the monocular preset's 2: with the deviation's term, an interval of constant specific
+    this (the monocular preset's 3: with the deviation's term, an interval of constant specific
     force kept the bare calibrated density, and the monocular window's elimination met
     "Indeterminate linear system" on the hall; BENCHMARKS.md).
     """
