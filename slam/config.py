@@ -281,12 +281,14 @@ PRESETS: dict[str, dict[str, Any]] = {
         # the accelerometer's scale-error noise of the reading's deviation, not of gravity
         # (with gravity's, room-figure8's scale ran away: Sim(3) 0.82 -> 1.024), and the
         # smoother's scale checked against the IMU every second; a 2 s lag (room-figure8's
-        # Sim(3) scale 1.024 -> 1.006; BENCHMARKS.md)
+        # Sim(3) scale 1.024 -> 1.006; BENCHMARKS.md); the accelerometer's calibrated density x3
+        # (at x1 the hall's window hit "Indeterminate linear system": 4 back-end resets -> 0)
         "backend": {
             "lag_s": 2.0,
             "map_landmarks": False,
             "min_keyframes_per_landmark": 3,
             "imu_accel_scale_error_of_deviation": True,
+            "imu_accel_density_factor": 3.0,
             "mono_scale_check_window_s": 5.0,
         },
         # the monocular front end's KLT has no predicted start: its backward check as measured

@@ -192,3 +192,28 @@ def test_scale_error_noise_covers_a_gyro_scale_error():
     np.testing.assert_allclose(
         p_still.getGyroscopeCovariance(), preintegration_params(imu).getGyroscopeCovariance()
     )
+
+
+def test_accel_density_factor_scales_the_calibrated_accelerometer_noise():
+    """Under ``accel_error_of_deviation`` a constant specific force adds nothing to the
+    accelerometer's noise: the density is the calibration's times ``accel_density_factor``
+    (the monocular preset's 3), and a factor of 1 leaves the calibration's exactly."""
+    from slam.backend.imu import scale_error_params
+    from slam.config import preset_config
+
+    imu = ImuCalibration()
+    n = 40
+    t_ns = np.arange(n + 1) * 5_000_000
+    gyro = np.tile([0.0, 0.0, 0.5], (n + 1, 1))
+    accel = np.tile([0.3, -0.2, 9.81], (n + 1, 1))
+    pieces = integration_pieces(t_ns, gyro, accel, 0, int(t_ns[-1]), 0.1)
+    assert pieces is not None
+    base = preintegration_params(imu).getAccelerometerCovariance()
+    one = scale_error_params(imu, pieces, 0.005, 0.005, True, 1.0)
+    np.testing.assert_array_equal(one.getAccelerometerCovariance(), base)
+    factor = preset_config("euroc-mono-imu").backend.imu_accel_density_factor
+    assert factor == 3.0
+    two = scale_error_params(imu, pieces, 0.005, 0.005, True, factor)
+    np.testing.assert_allclose(two.getAccelerometerCovariance(), base * factor**2, rtol=1e-12)
+    # the gyro's noise is not touched by it
+    np.testing.assert_array_equal(two.getGyroscopeCovariance(), one.getGyroscopeCovariance())

@@ -36,6 +36,12 @@ class BackendConfig:
     imu_accel_scale_error_of_deviation: bool = False
     """The accelerometer's term times the mean deviation of the specific force from its mean
     over the interval instead (the constant part is left to the bias state)."""
+    imu_accel_density_factor: float = bounded(1.0, ge=1, le=100)
+    """The calibration's accelerometer noise density times this in the IMU factors that allow
+    for scale errors (either ``imu_*_scale_error`` > 0). At the bare calibrated density (an
+    interval of constant specific force under ``imu_accel_scale_error_of_deviation``) the
+    monocular window's elimination met "Indeterminate linear system" (hall: 4 back-end
+    resets); x2 and x3 both end them, the monocular preset's 3 scored best (BENCHMARKS.md)."""
 
     # --- initialisation -------------------------------------------------------------------------
     init_mode: str = "auto"

@@ -113,20 +113,27 @@ def preintegrate(
     imu: ImuCalibration | None = None,
     scale_error: tuple[float, float] | None = None,
     accel_error_of_deviation: bool = False,
+    accel_density_factor: float = 1.0,
 ) -> gtsam.PreintegratedCombinedMeasurements | None:
     """Preintegrated measurements between two keyframe times, or None (no IMU factor) when the
     buffer does not cover [t0_ns, t1_ns] or a gap in it is longer than ``max_gap_s``.
 
     ``scale_error`` (gyro, accel; fractions) with the calibration ``imu``: the noise of this
     interval allows for that much scale / axis error (:func:`scale_error_params`) instead of
-    ``params``' fixed densities."""
+    ``params``' fixed densities (the accelerometer's calibrated density times
+    ``accel_density_factor`` there)."""
     t, g, a = buffer.arrays()
     pieces = integration_pieces(t, g, a, t0_ns, t1_ns, max_gap_s)
     if pieces is None:
         return None
     if imu is not None and scale_error is not None and max(scale_error) > 0:
         params = scale_error_params(
-            imu, pieces, scale_error[0], scale_error[1], accel_error_of_deviation
+            imu,
+            pieces,
+            scale_error[0],
+            scale_error[1],
+            accel_error_of_deviation,
+            accel_density_factor,
         )
     pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
     integrate_pieces(pim, pieces)
@@ -139,6 +146,7 @@ def scale_error_params(
     gyro_scale_error: float,
     accel_scale_error: float,
     accel_error_of_deviation: bool = False,
+    accel_density_factor: float = 1.0,
 ) -> gtsam.PreintegrationCombinedParams:
     """Preintegration parameters for one interval whose white noise also covers a scale (or
     axis) error of the sensors, a systematic error proportional to what they read.
@@ -159,6 +167,11 @@ def scale_error_params(
     gravity: 0.5 % of it is 0.05 m/s^2, on every interval, still or not) is an offset over
     the interval, which the bias state takes (used by the monocular preset, where the
     whole-reading term left the scale to the visual factors; BENCHMARKS.md).
+
+    ``accel_density_factor``: the calibration's accelerometer density is first multiplied by
+    this (the monocular preset's 3: with the deviation's term, an interval of constant specific
+    force kept the bare calibrated density, and the monocular window's elimination met
+    "Indeterminate linear system" on the hall; BENCHMARKS.md).
     """
     dt_s, gyro, accel = pieces
     span_s = float(dt_s.sum())
@@ -172,5 +185,7 @@ def scale_error_params(
         mean_accel = float(np.sum(np.linalg.norm(accel, axis=1) * dt_s) / span_s)
     root_t = np.sqrt(span_s)
     g_nd = np.hypot(imu.gyro_noise_density, gyro_scale_error * mean_rate * root_t)
-    a_nd = np.hypot(imu.accel_noise_density, accel_scale_error * mean_accel * root_t)
+    a_nd = np.hypot(
+        imu.accel_noise_density * accel_density_factor, accel_scale_error * mean_accel * root_t
+    )
     return preintegration_params(imu, float(g_nd), float(a_nd))

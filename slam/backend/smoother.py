@@ -698,6 +698,7 @@ class VioBackend:
             self.imu_calibration,
             (cfg.imu_gyro_scale_error, cfg.imu_accel_scale_error),
             cfg.imu_accel_scale_error_of_deviation,
+            cfg.imu_accel_density_factor,
         )
         if pim is not None:
             pred = pim.predict(gtsam.NavState(prev_pose, prev_vel), prev_bias)
