@@ -17,6 +17,7 @@ from slam.loop.global_ba import (
     KeyframeObservations,
     _fuse,
     _spread_rows,
+    _thinned,
     global_bundle_adjustment,
 )
 from slam.posegraph import PoseEdge, information_from_sigmas
@@ -189,3 +190,47 @@ def test_thinned_observations_keep_the_result(loop_world) -> None:
         np.array([thin.world_from_body[k][:3, 3] for k in poses]), true[:, :3, 3]
     )
     assert after < 0.01
+
+
+def test_thinning_by_track_keeps_each_pass_share() -> None:
+    """One fused landmark: 12 keyframes of a first pass (track 1), 3 of a revisit (track 2),
+    each keyframe with 2 other landmarks seen once. Counted per fused landmark, 4 kept leave
+    the revisit 1 observation; per track it keeps all 3 (and the first pass 4)."""
+    kf = np.concatenate([np.arange(15), np.repeat(np.arange(15), 2)])
+    t = kf * 100
+    others = np.arange(100, 130)
+    track = np.concatenate([[1] * 12 + [2] * 3, others])
+    fused = np.concatenate([np.zeros(15, np.int64), others])
+    by_landmark = _thinned(fused, t, kf, 4, 1)
+    by_track = _thinned(track, t, kf, 4, 1)
+    assert by_landmark[12:15].sum() == 1 and by_landmark[:15].sum() == 4
+    assert by_track[12:15].all() and by_track[:12].sum() == 4
+    assert by_landmark[15:].all() and by_track[15:].all()
+    # a keyframe left short of 2 x min_observations keeps all of its own rows
+    assert _thinned(fused, t, kf, 4, 2).all()
+
+
+def test_thinned_by_track_on_the_loop(loop_world) -> None:
+    """Thinned per track, the revisit's observations stay: more observations than per fused
+    landmark, the drift removed as well."""
+    calib, obs, true, odom, edges, pairs, t_ns = loop_world
+    poses = {k: odom[k] for k in range(len(odom))}
+    res = {
+        by: global_bundle_adjustment(
+            calib,
+            obs,
+            poses,
+            edges,
+            pairs,
+            0,
+            t_ns,
+            GlobalBaParams(max_keyframes_per_landmark=2, thin_by=by),
+        )
+        for by in ("track", "landmark")
+    }
+    track, landmark = res["track"], res["landmark"]
+    assert track is not None and landmark is not None
+    assert track.observations > landmark.observations
+    for r in (track, landmark):
+        pos = np.array([r.world_from_body[k][:3, 3] for k in poses])
+        assert ate_se3_rmse_m(pos, true[:, :3, 3]) < 0.01

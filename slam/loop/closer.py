@@ -928,6 +928,7 @@ class LoopCloser:
                 odometry_sigma_scale=c.global_ba_odometry_sigma_scale,
                 time_budget_s=budget_s,
                 max_keyframes_per_landmark=c.global_ba_max_keyframes_per_landmark,
+                thin_by=c.global_ba_thin_by,
             ),
         )
         self.stats.add_cpu("adjustment", cpu)

@@ -93,11 +93,18 @@ class GlobalBaParams:
     jump: with a quadratic cost such an edge dragged its keyframes 5-7 mm away from what their
     observations said."""
     max_keyframes_per_landmark: int = 0
-    """Keep at most about this many of each (fused) landmark's keyframe observations, evenly
-    spread over the keyframes that saw it, its first and last always (0: all); a keyframe
-    left with fewer than twice ``min_observations`` keeps all of its own. A landmark tracked
+    """Keep at most about this many of each track's (or fused landmark's: ``thin_by``)
+    keyframe observations, evenly spread over the keyframes that saw it, its first and last
+    always (0: all); a keyframe left with fewer than twice ``min_observations`` keeps all of
+    its own. A landmark tracked
     through 40 keyframes a few centimetres apart adds 40 nearly identical constraints; the
     iteration's cost grows with every one."""
+    thin_by: str = "track"
+    """What ``max_keyframes_per_landmark`` counts over: each front-end ``track`` (a landmark id
+    within one ``max_track_s`` span, before fusion: every pass over a place keeps its own
+    share) or each fused ``landmark`` (the revisits' few observations then lose out to the
+    first pass's many: on the hall's inputs, keyframe ATE after the adjustment 5.17 mm against
+    4.61 with no thinning and 4.52 by track; BENCHMARKS.md)."""
     anchor: str = "weak"
     """Gauge: "weak" priors on every keyframe's initial pose (no single keyframe trusted: the
     first ones may predate the back end's initialisation), or "fixed" (``fixed_id`` held)."""
@@ -194,6 +201,19 @@ def _spread_rows(group: np.ndarray, t: np.ndarray, at_most: int) -> np.ndarray:
     return np.sort(order[keep])
 
 
+def _thinned(
+    group: np.ndarray, t: np.ndarray, kf_of: np.ndarray, at_most: int, min_observations: int
+) -> np.ndarray:
+    """Mask of the observation rows kept when each ``group`` (a track or a fused landmark)
+    keeps about ``at_most`` of its rows (``_spread_rows``); a keyframe the thinning would
+    leave with fewer than ``2 * min_observations`` keeps all of its own."""
+    thin = np.zeros(len(group), bool)
+    thin[_spread_rows(group, t, at_most)] = True
+    kfs, counts = np.unique(kf_of[thin], return_counts=True)
+    thin |= ~np.isin(kf_of, kfs[counts >= 2 * min_observations])
+    return thin
+
+
 def global_bundle_adjustment(
     calib: Calibration,
     observations: dict[int, KeyframeObservations],
@@ -262,11 +282,8 @@ def global_bundle_adjustment(
         pts_cam[keep],
     )
     if p.max_keyframes_per_landmark > 0:
-        thin = np.zeros(len(lid), bool)
-        thin[_spread_rows(lid, t_row[keep], p.max_keyframes_per_landmark)] = True
-        # A keyframe the thinning would leave short of observations keeps all of its own.
-        kfs, counts = np.unique(kf_of[thin], return_counts=True)
-        thin |= ~np.isin(kf_of, kfs[counts >= 2 * p.min_observations])
+        group = lid if p.thin_by == "landmark" else split_id[keep]
+        thin = _thinned(group, t_row[keep], kf_of, p.max_keyframes_per_landmark, p.min_observations)
         kf_of, lid = kf_of[thin], lid[thin]
         left, right, pts_cam = left[thin], right[thin], pts_cam[thin]
     # Landmarks in enough keyframes, each with an initial guess from its first usable keyframe.
