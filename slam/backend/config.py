@@ -163,7 +163,12 @@ class BackendConfig:
     time_offset_max_ms: float = bounded(50.0, gt=0, le=500)
     """Search range: an offset beyond +- this is reported ("beyond the bound"), never applied."""
     time_offset_window_s: float = bounded(30.0, gt=0)
-    """Keyframe pairs of the last this many seconds are used."""
+    """Keyframe pairs of the last this many seconds are used. A camera with auto-exposure that
+    stamps its images at the end of the exposure shows the scene at mid-exposure, an offset of
+    minus half an exposure that moves with the light (-1 to -5 ms in ``slam synth --camera
+    realistic``): set 4 s to follow it (room-aggressive with that timing and no blur,
+    sequential, live / loop-closed ATE 15.9 / 6.0 mm with 30 s, 7.5 / 4.8 with 4 s; the clean
+    suite's figures with 4 s are in BENCHMARKS.md, 2026-12-02/03, cam17)."""
     time_offset_apply_std_ms: float = bounded(1.0, gt=0)
     """The estimate is applied once its standard deviation is below this."""
     time_offset_min_pairs: int = bounded(8, ge=3)
