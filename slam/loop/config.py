@@ -158,11 +158,13 @@ class LoopClosureConfig:
     """Observations kept per landmark in the global adjustment, spread over the keyframes
     that saw it (0: all). 10 made an iteration 3-4x cheaper, so the time-boxed adjustment
     converges where it did one iteration before (BENCHMARKS.md, "End of run")."""
-    global_ba_thin_by: Literal["track", "landmark"] = "track"
+    global_ba_thin_by: Literal["track", "landmark"] = "landmark"
     """What that limit counts over: each front-end ``track`` (a landmark id over one
     ``max_track_s`` span, before fusion, so every pass over a place keeps its share) or each
-    fused ``landmark`` (the revisits' observations lose out to the first pass's: hall keyframe
-    ATE after the adjustment 5.17 mm against 4.52 by track, BENCHMARKS.md)."""
+    fused ``landmark`` (the revisits' observations lose out to the first pass's). ``track``
+    is better without a time limit (sequential hall loop-closed 5.58 -> 4.93 mm) but keeps up
+    to 2x the observations: at ``--speed max`` room-aggressive's adjustment then no longer fit
+    its budget (loop-closed 2.3-2.4 mm against 1.9), hence ``landmark`` (BENCHMARKS.md)."""
     global_ba_pixel_sigma_px: float = bounded(1.0, gt=0)
     """Reprojection sigma of the global adjustment, pixels."""
     global_ba_odometry_sigma_scale: float = bounded(0.3, ge=0)
