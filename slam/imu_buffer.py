@@ -143,7 +143,8 @@ class ImuBuffer:
     def _count_problem(
         self, t_ns: int, finite: bool, saturated: bool, late: bool, gap_ns: int
     ) -> None:
-        """Count and warn about one sample of a batch as :meth:`_accept` would."""
+        """Count and warn about one sample's problem (the first of these that it has), for
+        :meth:`_accept` and :meth:`extend_batch` alike."""
         s = self.stats
         if not finite:
             s.rejected_nonfinite += 1
@@ -175,34 +176,27 @@ class ImuBuffer:
     def _accept(self, sample: ImuSample) -> bool:
         gyro = np.asarray(sample.gyro_rad_s, dtype=float).reshape(3)
         accel = np.asarray(sample.accel_m_s2, dtype=float).reshape(3)
-        s = self.stats
-        if not (np.all(np.isfinite(gyro)) and np.all(np.isfinite(accel))):
-            s.rejected_nonfinite += 1
-            self._warn("nonfinite", s.rejected_nonfinite, f"non-finite sample at t={sample.t_ns}")
-            return False
-        if self._check_saturation and (
-            np.abs(accel).max() > self._max_accel_m_s2 or np.abs(gyro).max() > self._max_gyro_rad_s
-        ):
-            s.rejected_saturated += 1
-            self._warn("saturated", s.rejected_saturated, f"saturated sample at t={sample.t_ns}")
-            return False
-        if self._t and sample.t_ns <= self._t[-1]:
-            s.rejected_out_of_order += 1
-            self._warn(
-                "out_of_order", s.rejected_out_of_order, f"non-increasing time t={sample.t_ns}"
+        t_ns = int(sample.t_ns)
+        finite = bool(np.all(np.isfinite(gyro)) and np.all(np.isfinite(accel)))
+        saturated = (
+            finite
+            and self._check_saturation
+            and bool(
+                np.abs(accel).max() > self._max_accel_m_s2
+                or np.abs(gyro).max() > self._max_gyro_rad_s
             )
+        )
+        late = bool(self._t) and t_ns <= self._t[-1]
+        step_ns = t_ns - self._t[-1] if self._t else 0
+        gap_ns = step_ns if step_ns > self._gap_warn_ns else 0
+        if not finite or saturated or late or gap_ns > 0:
+            self._count_problem(t_ns, finite, saturated, late, gap_ns)
+        if not finite or saturated or late:
             return False
-        if self._t:
-            gap_ns = sample.t_ns - self._t[-1]
-            if gap_ns > self._gap_warn_ns:
-                s.gaps_warned += 1
-                self._warn(
-                    "gap", s.gaps_warned, f"gap of {gap_ns * 1e-9:.3f} s before t={sample.t_ns}"
-                )
-        self._t.append(int(sample.t_ns))
+        self._t.append(t_ns)
         self._samples.append(sample)
         self._cache = None
-        s.accepted += 1
+        self.stats.accepted += 1
         return True
 
     def _forget_old(self) -> None:
