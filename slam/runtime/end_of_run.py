@@ -12,7 +12,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from slam.core.geometry import invert_transform
+from slam.core.geometry import invert_transform, poses_to_matrices
 from slam.core.trajectory import Trajectory
 from slam.loop.closer import loop_closed_poses
 from slam.runtime.backend import BackendStage
@@ -36,11 +36,14 @@ def keyframe_trajectory(
     poses = sorted((times[k], p) for k, p in estimated.items())
     if estimated:
         last = max(estimated)
-        front = dict(zip(frontend_kfs.t_ns.tolist(), frontend_kfs.matrices(), strict=True))
-        later = sorted(times[k] for k in times if k > last and times[k] in front)
-        if later and times[last] in front:
-            map_from_front = estimated[last] @ invert_transform(front[times[last]])
-            poses += [(t, map_from_front @ front[t]) for t in later]
+        row_of = {t: i for i, t in enumerate(frontend_kfs.t_ns.tolist())}
+        later = sorted(times[k] for k in times if k > last and times[k] in row_of)
+        if later and times[last] in row_of:
+            # Only these rows to matrices: this runs at every periodic flush, in the main thread.
+            rows = [row_of[times[last]]] + [row_of[t] for t in later]
+            front = poses_to_matrices(frontend_kfs.positions_m[rows], frontend_kfs.q_wxyz[rows])
+            map_from_front = estimated[last] @ invert_transform(front[0])
+            poses += [(t, map_from_front @ m) for t, m in zip(later, front[1:], strict=True)]
     return trajectory_from_poses(poses)
 
 
