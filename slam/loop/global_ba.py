@@ -27,6 +27,7 @@ from __future__ import annotations
 import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import gtsam
 import numpy as np
@@ -99,7 +100,7 @@ class GlobalBaParams:
     its own. A landmark tracked
     through 40 keyframes a few centimetres apart adds 40 nearly identical constraints; the
     iteration's cost grows with every one."""
-    thin_by: str = "track"
+    thin_by: Literal["track", "landmark"] = "landmark"
     """What ``max_keyframes_per_landmark`` counts over: each front-end ``track`` (a landmark id
     within one ``max_track_s`` span, before fusion: every pass over a place keeps its own
     share) or each fused ``landmark`` (the revisits' few observations then lose out to the
