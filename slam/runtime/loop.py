@@ -115,7 +115,7 @@ class LoopCore(WorkerCore):
             # adjustment's first iteration alone would overrun it by seconds there.
             skipped = f"the loop backlog used its time budget ({spent_s:.1f} of {budget_s:.1f} s)"
         if skipped is None and budget_s is not None and self.offer_fallback is not None:
-            began_s = time.perf_counter() - spent_s
+            began_s = time.perf_counter() if self.end_began_s is None else self.end_began_s
             self.offer_fallback(
                 self._final(None, f"stopped: not done within its time budget ({budget_s:.1f} s)"),
                 began_s + budget_s + closer.cfg.global_ba_grace_s,
