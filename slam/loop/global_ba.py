@@ -76,10 +76,6 @@ class GlobalBaParams:
     """Initial guesses farther than this from their first keyframe are left out."""
     outlier_px: float = 3.0
     max_iterations: int = 15
-    lambda_initial: float = 1.0
-    """Levenberg-Marquardt's first damping. GTSAM's default (1e-5) made the first iteration
-    cost 3-5 single iterations (hall 3.2 s against 0.9, room-aggressive 7.8 against 1.6 s CPU,
-    the same error after it): the same steps after the first, so the same result."""
     relative_error_tol: float = 1e-3
     """Stop when an iteration lowers the error by less than this share. On the four suite
     sequences' adjustments the keyframes stop moving (keyframe ATE within 0.02 mm of the
@@ -418,7 +414,6 @@ def global_bundle_adjustment(
     rms_before = float(np.sqrt(np.mean(finite**2))) if len(finite) else 0.0
     lm_params = gtsam.LevenbergMarquardtParams()
     lm_params.setMaxIterations(p.max_iterations)
-    lm_params.setlambdaInitial(p.lambda_initial)
     lm_params.setRelativeErrorTol(p.relative_error_tol)
     iterations = 0
     result = values
