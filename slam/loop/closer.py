@@ -929,6 +929,7 @@ class LoopCloser:
                 time_budget_s=budget_s,
                 max_keyframes_per_landmark=c.global_ba_max_keyframes_per_landmark,
                 thin_by=c.global_ba_thin_by,
+                max_observations_per_landmark=c.global_ba_max_observations_per_landmark,
             ),
         )
         self.stats.add_cpu("adjustment", cpu)

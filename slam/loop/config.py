@@ -165,6 +165,11 @@ class LoopClosureConfig:
     is better without a time limit (sequential hall loop-closed 5.58 -> 4.93 mm) but keeps up
     to 2x the observations: at ``--speed max`` room-aggressive's adjustment then no longer fit
     its budget (loop-closed 2.3-2.4 mm against 1.9), hence ``landmark`` (BENCHMARKS.md)."""
+    global_ba_max_observations_per_landmark: int = bounded(0, ge=0)
+    """With ``global_ba_thin_by: track``: the keyframe observations a fused landmark's tracks
+    share (each keeps this divided by their number, at least 2; 0: no shared limit). Where
+    every pass fuses into the same few landmarks (a small room), their elimination makes
+    dense blocks over all the keyframes that saw them: the adjustment's cost and memory."""
     global_ba_pixel_sigma_px: float = bounded(1.0, gt=0)
     """Reprojection sigma of the global adjustment, pixels."""
     global_ba_odometry_sigma_scale: float = bounded(0.3, ge=0)

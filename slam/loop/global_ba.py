@@ -117,6 +117,13 @@ class GlobalBaParams:
     share) or each fused ``landmark`` (the revisits' few observations then lose out to the
     first pass's many: on the hall's inputs, keyframe ATE after the adjustment 5.17 mm against
     4.61 with no thinning and 4.52 by track; BENCHMARKS.md)."""
+    max_observations_per_landmark: int = 0
+    """With ``thin_by`` track: a fused landmark's tracks share this many keyframe
+    observations (each keeps at most this divided by their number, at least 2 and at most
+    ``max_keyframes_per_landmark``; 0: no shared limit). In a small room every pass fuses into
+    the same landmarks: on room-aggressive 1,847 landmarks held 125,000 observations, and
+    eliminating a landmark seen by a hundred keyframes makes a dense block over all of them
+    (the first iteration allocated 0.9 GB and took 5 s in the run)."""
     anchor: str = "weak"
     """Gauge: "weak" priors on every keyframe's initial pose (no single keyframe trusted: the
     first ones may predate the back end's initialisation), or "fixed" (``fixed_id`` held)."""
@@ -197,16 +204,19 @@ def _project(
     return uv, z
 
 
-def _spread_rows(group: np.ndarray, t: np.ndarray, at_most: int) -> np.ndarray:
+def _spread_rows(group: np.ndarray, t: np.ndarray, at_most: int | np.ndarray) -> np.ndarray:
     """Row indices that keep about ``at_most`` rows of each ``group`` (its first and last in
-    ``t`` order, the others evenly spread between), in their original order."""
+    ``t`` order, the others evenly spread between), in their original order. ``at_most``: one
+    limit, or each row's group's limit."""
     order = np.lexsort((t, group))
+    if isinstance(at_most, np.ndarray):
+        at_most = at_most[order]
     g = group[order]
     start = np.r_[0, np.flatnonzero(g[1:] != g[:-1]) + 1]
     size = np.diff(np.r_[start, len(g)])
     rank = np.arange(len(g)) - np.repeat(start, size)
     count = np.repeat(size, size)
-    step = np.maximum(count - 1, 1) / max(at_most - 1, 1)
+    step = np.maximum(count - 1, 1) / np.maximum(at_most - 1, 1)
     slot = np.floor(rank / step)
     prev_slot = np.floor((rank - 1) / step)
     keep = (count <= at_most) | (rank == 0) | (rank == count - 1) | (slot != prev_slot)
@@ -214,7 +224,11 @@ def _spread_rows(group: np.ndarray, t: np.ndarray, at_most: int) -> np.ndarray:
 
 
 def _thinned(
-    group: np.ndarray, t: np.ndarray, kf_of: np.ndarray, at_most: int, min_observations: int
+    group: np.ndarray,
+    t: np.ndarray,
+    kf_of: np.ndarray,
+    at_most: int | np.ndarray,
+    min_observations: int,
 ) -> np.ndarray:
     """Mask of the observation rows kept when each ``group`` (a track or a fused landmark)
     keeps about ``at_most`` of its rows (``_spread_rows``); a keyframe the thinning would
@@ -294,8 +308,16 @@ def global_bundle_adjustment(
         pts_cam[keep],
     )
     if p.max_keyframes_per_landmark > 0:
-        group = lid if p.thin_by == "landmark" else split_id[keep]
-        thin = _thinned(group, t_row[keep], kf_of, p.max_keyframes_per_landmark, p.min_observations)
+        track = split_id[keep]
+        group = lid if p.thin_by == "landmark" else track
+        at_most: int | np.ndarray = p.max_keyframes_per_landmark
+        if p.thin_by == "track" and p.max_observations_per_landmark > 0:
+            # Each fused landmark's tracks share its limit: at least 2 each.
+            lm_of_track = np.unique(np.stack([lid, track], axis=1), axis=0)[:, 0]
+            lms, tracks_per_lm = np.unique(lm_of_track, return_counts=True)
+            share = p.max_observations_per_landmark // tracks_per_lm[np.searchsorted(lms, lid)]
+            at_most = np.clip(share, 2, p.max_keyframes_per_landmark)
+        thin = _thinned(group, t_row[keep], kf_of, at_most, p.min_observations)
         kf_of, lid = kf_of[thin], lid[thin]
         left, right, pts_cam = left[thin], right[thin], pts_cam[thin]
     # Landmarks in enough keyframes, each with an initial guess from its first usable keyframe.
