@@ -158,18 +158,19 @@ class LoopClosureConfig:
     """Observations kept per landmark in the global adjustment, spread over the keyframes
     that saw it (0: all). 10 made an iteration 3-4x cheaper, so the time-boxed adjustment
     converges where it did one iteration before (BENCHMARKS.md, "End of run")."""
-    global_ba_thin_by: Literal["track", "landmark"] = "landmark"
+    global_ba_thin_by: Literal["track", "landmark"] = "track"
     """What that limit counts over: each front-end ``track`` (a landmark id over one
     ``max_track_s`` span, before fusion, so every pass over a place keeps its share) or each
-    fused ``landmark`` (the revisits' observations lose out to the first pass's). ``track``
-    is better without a time limit (sequential hall loop-closed 5.58 -> 4.93 mm) but keeps up
-    to 2x the observations: at ``--speed max`` room-aggressive's adjustment then no longer fit
-    its budget (loop-closed 2.3-2.4 mm against 1.9), hence ``landmark`` (BENCHMARKS.md)."""
-    global_ba_max_observations_per_landmark: int = bounded(0, ge=0)
+    fused ``landmark`` (the revisits' observations lose out to the first pass's: sequential
+    loop-closed mm, landmark / track with the shared limit below, hall 5.60 / 5.25, room-loop
+    1.43 / 1.29, room-figure8 2.16 / 2.02, room-aggressive 1.69 / 1.75; BENCHMARKS.md)."""
+    global_ba_max_observations_per_landmark: int = bounded(40, ge=0)
     """With ``global_ba_thin_by: track``: the keyframe observations a fused landmark's tracks
     share (each keeps this divided by their number, at least 2; 0: no shared limit). Where
     every pass fuses into the same few landmarks (a small room), their elimination makes
-    dense blocks over all the keyframes that saw them: the adjustment's cost and memory."""
+    dense blocks over all the keyframes that saw them: without it, room-aggressive's
+    adjustment did not fit its budget at ``--speed max`` (its first iteration allocated
+    0.9 GB)."""
     global_ba_pixel_sigma_px: float = bounded(1.0, gt=0)
     """Reprojection sigma of the global adjustment, pixels."""
     global_ba_odometry_sigma_scale: float = bounded(0.3, ge=0)

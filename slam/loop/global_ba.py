@@ -111,13 +111,13 @@ class GlobalBaParams:
     its own. A landmark tracked
     through 40 keyframes a few centimetres apart adds 40 nearly identical constraints; the
     iteration's cost grows with every one."""
-    thin_by: Literal["track", "landmark"] = "landmark"
+    thin_by: Literal["track", "landmark"] = "track"
     """What ``max_keyframes_per_landmark`` counts over: each front-end ``track`` (a landmark id
     within one ``max_track_s`` span, before fusion: every pass over a place keeps its own
     share) or each fused ``landmark`` (the revisits' few observations then lose out to the
     first pass's many: on the hall's inputs, keyframe ATE after the adjustment 5.17 mm against
     4.61 with no thinning and 4.52 by track; BENCHMARKS.md)."""
-    max_observations_per_landmark: int = 0
+    max_observations_per_landmark: int = 40
     """With ``thin_by`` track: a fused landmark's tracks share this many keyframe
     observations (each keeps at most this divided by their number, at least 2 and at most
     ``max_keyframes_per_landmark``; 0: no shared limit). In a small room every pass fuses into
