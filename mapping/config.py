@@ -48,7 +48,7 @@ class MapperStageConfig:
     work keeps both cores busy the mapper gets almost no CPU: its keyframes are dropped and
     the new views among them fused at the end (``catch_up_*``). False: nice +15 only
     (``player.idle_workers`` puts it under SCHED_IDLE too)."""
-    pause_during_frames: bool = True
+    pause_while_tracking: bool = True
     """Stop the mapper process (SIGSTOP, then SIGCONT) while the front end works on a frame,
     when the mapper has a keyframe in hand; paced playback only (``player.speed`` > 0: at
     ``max`` the front end never rests and the mapper would get nothing). SCHED_IDLE alone

@@ -193,7 +193,7 @@ def _wait_for(check, timeout_s: float) -> bool:
 
 @pytest.mark.skipif(not os.path.exists("/proc/self/stat"), reason="Linux /proc")
 def test_front_end_frame_stops_a_working_mapper_and_resumes_it():
-    """``paused_while_working`` (``mapping.pause_during_frames``) stops the worker process for
+    """``paused_while_working`` (``mapping.pause_while_tracking``) stops the worker process for
     the frame only while it has a keyframe in hand, and the keyframe is fused once it resumes."""
     cfg = MapperStageConfig(enabled=True, num_planes=32, final_reintegration=False)
     stage = MapperStage(_calibration(), cfg, threaded=True, pausable=True)

@@ -50,7 +50,7 @@ class FrontendStage(Stage):
         self._applied: tuple[int, np.ndarray] | None = None  # segment, correction last applied
         self.quiet: Callable[[], AbstractContextManager[Any]] = contextlib.nullcontext
         """The context each frame's work runs in (wiring: the mapper's
-        :meth:`~slam.runtime.mapper.MapperStage.paused_while_working`, ``mapping.pause_during_frames``)."""
+        :meth:`~slam.runtime.mapper.MapperStage.paused_while_working`, ``mapping.pause_while_tracking``)."""
         threads = frontend.cfg.opencv_threads
         cv2.setNumThreads(threads if threads > 0 else -1)  # this process's OpenCV; -1: default
 
