@@ -262,9 +262,10 @@ class MapperStage(ProcessStage):
         Why: a SCHED_IDLE mapper still slows the front end on this 2-core VM. Interleaved in
         one run (hall, ``--speed 1``, load 8-9), front-end frames with the mapper working
         beside them against frames with it stopped: latency p90 42 against 25 ms, run-queue
-        wait mean 10.7 against 5.8 ms (a preempted front end stays queued on its core: the
-        other core runs SCHED_IDLE work, so it never goes idle and pulls it), "GIL" residual
-        p99 13 against 7 ms (hypervisor steal: the host does not see guest priorities).
+        wait mean 10.7 against 5.8 ms (likely: a preempted front end stays queued on its
+        core, and a core running SCHED_IDLE work never goes idle to pull it over), the rest
+        ("GIL") p99 13 against 7 ms (it holds hypervisor steal: the host sees no guest
+        priorities).
         BENCHMARKS.md, "Front end's p99 with the mapper: stopped during frames"."""
         proc = self._proc
         stop = False
