@@ -48,6 +48,16 @@ class MapperStageConfig:
     work keeps both cores busy the mapper gets almost no CPU: its keyframes are dropped and
     the new views among them fused at the end (``catch_up_*``). False: nice +15 only
     (``player.idle_workers`` puts it under SCHED_IDLE too)."""
+    pause_while_tracking: bool = True
+    """Stop the mapper process (SIGSTOP, then SIGCONT) while the front end works on a frame,
+    when the mapper has a keyframe in hand; paced playback only (``player.speed`` > 0: at
+    ``max`` the front end never rests and the mapper would get nothing). SCHED_IDLE alone
+    does not keep the mapper off the front end on 2 cores: a preempted front end waits on
+    its core while the other runs the mapper, and the hypervisor sees no guest priority.
+    Interleaved in one run (hall, ``--speed 1``, loaded machine): front-end latency p90 42 ms
+    with the mapper working beside it, 25 ms with it stopped (BENCHMARKS.md, "Front end's
+    p99 with the mapper: stopped during frames"). The mapper keeps the front end's idle time
+    (~80 % of each frame interval at 20 Hz)."""
     max_backlog: int = bounded(4, ge=1)
     """Keyframes waiting for the mapper; beyond that a keyframe is dropped (and counted)."""
     catch_up_max_keyframes: int = bounded(300, ge=0)

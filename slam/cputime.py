@@ -28,3 +28,42 @@ def runqueue_wait_ns() -> int | None:
         return int(fields[1])
     except (OSError, IndexError, ValueError):
         return None
+
+
+_PROC_STAT = "/proc/stat"
+
+
+def machine_cpu_ticks() -> tuple[int, int, int] | None:
+    """The whole machine's CPU time so far, in clock ticks (all CPUs): (busy, idle, steal), or
+    None where the OS does not say (not Linux). Steal is time the hypervisor ran something else
+    on a virtual CPU that had work. It is in neither a thread's CPU time nor its run-queue wait
+    (Linux's paravirtual steal accounting takes it out of both), so in a front-end frame it
+    shows in the rest, ``frontend_frame_gil``: on this project's 2-vCPU VM frames that held a
+    steal tick had a rest of 4.9 ms on average against 1.4 ms (BENCHMARKS.md, "Front end's
+    p99 with the mapper: stopped during frames")."""
+    try:
+        with open(_PROC_STAT, "rb") as fh:
+            fields = [int(v) for v in fh.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    if len(fields) < 8:
+        return None
+    user, nice, system, idle, iowait, irq, softirq, steal = fields[:8]
+    return user + nice + system + irq + softirq, idle + iowait, steal
+
+
+def machine_cpu_since(start: tuple[int, int, int] | None) -> dict[str, float] | None:
+    """Shares of the machine's CPU time since ``start`` (:func:`machine_cpu_ticks`): busy (any
+    process), idle and stolen by the hypervisor; None if unknown or no time passed."""
+    now = machine_cpu_ticks()
+    if start is None or now is None:
+        return None
+    busy, idle, steal = (b - a for a, b in zip(start, now, strict=True))
+    total = busy + idle + steal
+    if total <= 0:
+        return None
+    return {
+        "busy_fraction": busy / total,
+        "idle_fraction": idle / total,
+        "steal_fraction": steal / total,
+    }

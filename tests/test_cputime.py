@@ -36,3 +36,18 @@ def test_runqueue_wait_is_a_non_decreasing_counter() -> None:
     _spin(100_000)
     b = runqueue_wait_ns()
     assert a is not None and b is not None and 0 <= a <= b
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc/stat is Linux's")
+def test_machine_cpu_shares_add_up_and_see_busy_work() -> None:
+    from slam.cputime import machine_cpu_since, machine_cpu_ticks
+
+    start = machine_cpu_ticks()
+    assert start is not None and all(v >= 0 for v in start)
+    _spin(3_000_000)  # a few clock ticks (10 ms each) of work on this CPU
+    shares = machine_cpu_since(start)
+    assert shares is not None
+    assert sum(shares.values()) == pytest.approx(1.0)
+    assert shares["busy_fraction"] > 0.0  # at least this process ran
+    assert all(0.0 <= v <= 1.0 for v in shares.values())
+    assert machine_cpu_since(None) is None

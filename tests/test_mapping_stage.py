@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 from synthetic_planes import PlaneScene, orbit_poses
@@ -172,3 +174,44 @@ def test_a_full_hold_is_thinned_and_stays_spread_over_the_run():
     xs = [h.world_from_cam0[0, 3] for h in stage.held]
     assert xs == [0.0, 4.0, 8.0]  # every 4th: an even subsample from the start
     stage.finish(None, None)
+
+
+def _process_state(pid: int) -> str:
+    from pathlib import Path
+
+    return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+
+
+def _wait_for(check, timeout_s: float) -> bool:
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while not check() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return check()
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/stat"), reason="Linux /proc")
+def test_front_end_frame_stops_a_working_mapper_and_resumes_it():
+    """``paused_while_working`` (``mapping.pause_while_tracking``) stops the worker process for
+    the frame only while it has a keyframe in hand, and the keyframe is fused once it resumes."""
+    cfg = MapperStageConfig(enabled=True, num_planes=32, final_reintegration=False)
+    stage = MapperStage(_calibration(), cfg, threaded=True, pausable=True)
+    proc = stage._proc
+    assert proc is not None and stage.pausable
+    proc.wait_ready()
+    pid = proc.pid
+    assert pid is not None
+    with stage.paused_while_working():  # nothing to work on: left alone
+        assert _process_state(pid) != "T"
+    assert stage.paused_frames == 0
+    assert proc.pause()  # hold it so that the keyframe is still in hand below
+    stage.process(_keyframes(1)[0])
+    with stage.paused_while_working():
+        assert _wait_for(lambda: _process_state(pid) == "T", 2.0)
+        assert not _wait_for(lambda: len(stage.reports) > 0, 0.3)  # stopped: no work done
+    assert _wait_for(lambda: _process_state(pid) != "T", 2.0)
+    assert _wait_for(lambda: len(stage.reports) == 1, 60.0)  # resumed: fused
+    assert stage.paused_frames == 1 and stage.stats()["paused_frames"] == 1
+    stage.finish({}, None)
+    assert stage.error is None

@@ -40,3 +40,36 @@ def test_worker_ends_when_the_main_process_is_killed(tmp_path: Path) -> None:
     while _running(pid) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not _running(pid), f"worker {pid} outlived its killed main process"
+
+
+STOPPED = """
+import os, signal
+from slam.runtime.worker import WorkerCore, WorkerProcess
+
+class Idle(WorkerCore):
+    def handle(self, msg):
+        return []
+
+if __name__ == "__main__":
+    worker = WorkerProcess(
+        "stopped-test", Idle, (), lambda item: False, lambda code: None, "mapper", pausable=True
+    )
+    worker.wait_ready()
+    assert worker.pause()
+    print(worker.pid, flush=True)
+    os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+
+def test_stopped_worker_ends_when_the_main_process_is_killed(tmp_path: Path) -> None:
+    """A pausable worker (the mapper, stopped while the front end tracks a frame) cannot poll
+    for its parent while stopped: the kernel kills it with its parent (PR_SET_PDEATHSIG)."""
+    script = tmp_path / "main.py"
+    script.write_text(STOPPED)
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == -9
+    pid = int(proc.stdout.split()[0])
+    deadline = time.monotonic() + 10.0
+    while _running(pid) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not _running(pid), f"stopped worker {pid} outlived its killed main process"

@@ -3,6 +3,7 @@ leave SIGINT/SIGTERM to the main process."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import threading
@@ -147,12 +148,57 @@ def test_live_mapper_is_sched_idle_unless_configured_otherwise(
     class _Mapper:
         def __init__(self, *args: Any, **kw: Any) -> None:
             seen.append(args[3])
+            self.pausable = kw["pausable"]
+
+        def paused_while_working(self) -> Any:
+            return contextlib.nullcontext()
 
     monkeypatch.setattr(wiring, "MapperStage", _Mapper)
     cfg = preset_config("stereo-vo")
     cfg.loop_closure = False
     cfg.player.idle_workers = idle_workers
     cfg.mapping = replace(cfg.mapping, enabled=True, idle_worker=mapper_idle)
-    wiring.build(random_sequence(num_frames=3), cfg, None)
+    p = wiring.build(random_sequence(num_frames=3), cfg, None)
     assert seen == [expected]
     assert preset_config("stereo-vo").mapping.idle_worker  # the default
+    # mapping.pause_while_tracking (default on): the front end's frames stop the mapper
+    assert p.mapper is not None and p.mapper.pausable
+    assert p.frontend.quiet == p.mapper.paused_while_working
+
+
+@pytest.mark.parametrize(
+    ("speed", "sequential", "pause", "expected"),
+    [
+        (1.0, False, True, True),
+        (0.0, False, True, False),
+        (1.0, True, True, False),
+        (1.0, False, False, False),
+    ],
+)
+def test_mapper_is_stopped_during_frames_only_in_paced_concurrent_runs(
+    monkeypatch: pytest.MonkeyPatch, speed: float, sequential: bool, pause: bool, expected: bool
+) -> None:
+    """``mapping.pause_while_tracking`` applies at a paced speed in a concurrent run: at
+    ``--speed max`` (0) the front end never rests, and a sequential run has no worker."""
+    from dataclasses import replace
+
+    from datasets.memory import random_sequence
+    from slam.config import preset_config
+    from slam.runtime import wiring
+
+    class _Mapper:
+        def __init__(self, *args: Any, **kw: Any) -> None:
+            self.pausable = kw["pausable"] and args[2]  # threaded
+
+        def paused_while_working(self) -> Any:
+            return contextlib.nullcontext()
+
+    monkeypatch.setattr(wiring, "MapperStage", _Mapper)
+    cfg = preset_config("stereo-vo")
+    cfg.loop_closure = False
+    cfg.player.speed = speed
+    cfg.player.sequential = sequential
+    cfg.mapping = replace(cfg.mapping, enabled=True, pause_while_tracking=pause)
+    p = wiring.build(random_sequence(num_frames=3), cfg, None)
+    assert p.mapper is not None and p.mapper.pausable == expected
+    assert (p.frontend.quiet is not contextlib.nullcontext) == expected

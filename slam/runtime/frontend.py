@@ -3,8 +3,10 @@ end's corrections out."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 from typing import Any
 
 import cv2
@@ -46,16 +48,20 @@ class FrontendStage(Stage):
         self._map_generation = 0
         self._correction: LoopCorrection | None = None
         self._applied: tuple[int, np.ndarray] | None = None  # segment, correction last applied
+        self.quiet: Callable[[], AbstractContextManager[Any]] = contextlib.nullcontext
+        """The context each frame's work runs in (wiring: the mapper's
+        :meth:`~slam.runtime.mapper.MapperStage.paused_while_working`, ``mapping.pause_while_tracking``)."""
         threads = frontend.cfg.opencv_threads
         cv2.setNumThreads(threads if threads > 0 else -1)  # this process's OpenCV; -1: default
 
     def process(self, msg: Any) -> None:
         assert isinstance(msg, StereoFrame)
-        result = self._in_map(self.frontend.track(msg))
-        for correction in self.frontend.take_corrections():
-            self.emit(correction)
-        self.emit(result)  # the pose goes out before the keyframe work (FrontEnd.after_pose)
-        keyframe = self.frontend.after_pose()
+        with self.quiet():
+            result = self._in_map(self.frontend.track(msg))
+            for correction in self.frontend.take_corrections():
+                self.emit(correction)
+            self.emit(result)  # the pose goes out before the keyframe work (FrontEnd.after_pose)
+            keyframe = self.frontend.after_pose()
         if keyframe is not None:
             self.emit(keyframe)
 

@@ -22,6 +22,8 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -201,9 +203,11 @@ class MapperStage(ProcessStage):
         threaded: bool,
         idle_worker: bool = False,
         live_mesh: bool = True,
+        pausable: bool = False,
     ):
         """``idle_worker``: run the worker process under SCHED_IDLE (``slam.runtime.priority``);
-        ``live_mesh``: snapshots for a viewer (see :class:`MapperCore`)."""
+        ``live_mesh``: snapshots for a viewer (see :class:`MapperCore`); ``pausable``: the
+        front end may stop the worker while it tracks a frame (:meth:`paused_while_working`)."""
         super().__init__(
             "mapper",
             256,
@@ -212,7 +216,11 @@ class MapperStage(ProcessStage):
             (calib, cfg, live_mesh),
             role="mapper",
             idle=idle_worker,
+            pausable=pausable,
         )
+        self.pausable = pausable and self.use_process
+        self.paused_frames = 0
+        """Front-end frames during which the worker was stopped (it had work)."""
         self.cfg = cfg
         self.calib = calib
         self.body_from_cam0 = calib.cameras[0].body_from_cam
@@ -245,6 +253,33 @@ class MapperStage(ProcessStage):
         self.summary = MapperSummary()
         self._summary_seen = threading.Event()
         self._lock = threading.Lock()
+
+    @contextmanager
+    def paused_while_working(self) -> Iterator[None]:
+        """Stop the worker process for the duration (the front end's frame) if it has a
+        keyframe to work on; a waiting worker is left alone (it takes nothing from anyone).
+
+        Why: a SCHED_IDLE mapper still slows the front end on this 2-core VM. Interleaved in
+        one run (hall, ``--speed 1``, load 8-9), front-end frames with the mapper working
+        beside them against frames with it stopped: latency p90 42 against 25 ms, run-queue
+        wait mean 10.7 against 5.8 ms (likely: a preempted front end stays queued on its
+        core, and a core running SCHED_IDLE work never goes idle to pull it over), the rest
+        ("GIL") p99 13 against 7 ms (it holds hypervisor steal: the host sees no guest
+        priorities).
+        BENCHMARKS.md, "Front end's p99 with the mapper: stopped during frames"."""
+        proc = self._proc
+        stop = False
+        if self.pausable and proc is not None and self.error is None:
+            with self._lock:
+                working = len(self.sent) > len(self.reports)
+            stop = working and proc.pause()
+        try:
+            yield
+        finally:
+            if stop:
+                assert proc is not None
+                proc.resume()
+                self.paused_frames += 1
 
     # -- results -------------------------------------------------------------------------
     def on_output(self, item: Any) -> None:
@@ -422,6 +457,7 @@ class MapperStage(ProcessStage):
             "keyframes_skipped_static": len(reports) - len(fused),
             "keyframes_dropped_lag": self.dropped_lag,
             "keyframes_caught_up": self.caught_up,
+            "paused_frames": self.paused_frames,
             "max_backlog": self.max_backlog_seen,
             "max_lag_s": self.max_lag_s,
             "depth": latency_summary([r.depth_ms for r in fused]),

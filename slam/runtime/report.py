@@ -19,6 +19,7 @@ from datasets.sequence import Sequence
 from slam.config import SlamConfig, config_to_yaml
 from slam.core.latency import latency_summary
 from slam.core.trajectory import Trajectory
+from slam.cputime import machine_cpu_since, machine_cpu_ticks
 from slam.frontend.tracker import FrontendStats
 from slam.runtime.control import RunControl
 from slam.runtime.end_of_run import (
@@ -105,6 +106,8 @@ class Run:
     memory: TreeMemory
     state: PlayState = field(default_factory=PlayState)
     times: RunTimes = field(default_factory=lambda: RunTimes(t_wall0=time.perf_counter()))
+    machine_cpu0: tuple[int, int, int] | None = field(default_factory=machine_cpu_ticks)
+    """The machine's CPU ticks when the run began (stats.json ``machine_cpu``)."""
     _outputs: RunOutputs | None = field(default=None, init=False, repr=False)
 
     def stats(self, error: StageError | None) -> dict[str, Any]:
@@ -141,6 +144,9 @@ class Run:
                 **p.recorder.frontend_breakdown(),
                 **{f"stage_{s.name}": s.latency_stats() for s in p.stages},
             },
+            # The whole machine since the start (other processes too): a busy machine, or a
+            # hypervisor stealing time, explains slow frames (``slam.cputime``).
+            "machine_cpu": machine_cpu_since(self.machine_cpu0),
             "peak_rss_mb": mem["total_peak_mb"],
             "memory": mem,
             "loop_closure": None if p.loop is None else p.loop.stats(),

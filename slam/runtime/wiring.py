@@ -123,7 +123,10 @@ def build(seq: Sequence, cfg: SlamConfig, session: ViewerSession | None) -> Pipe
             threaded,
             idle or cfg.mapping.idle_worker,
             live_mesh=viewer is not None,
+            pausable=cfg.mapping.pause_while_tracking and cfg.player.speed > 0,
         )
+        if p.mapper.pausable:
+            p.frontend.quiet = p.mapper.paused_while_working
 
     fe = p.frontend
     fe.connect(recorder, FrontendCorrection, TrackingResult)

@@ -17,6 +17,7 @@ import copy
 import multiprocessing as mp
 import os
 import queue
+import signal
 import threading
 import time
 import traceback
@@ -86,6 +87,21 @@ def name_this_process(name: str) -> None:
         pass
 
 
+def die_with_parent() -> None:
+    """Linux: have the kernel kill the calling process (SIGKILL) when the thread that started it
+    ends. A worker that the stage may stop (:meth:`WorkerProcess.pause`) cannot poll
+    :func:`main_process_gone` while it is stopped; a main process killed at that moment would
+    leave it stopped forever. Elsewhere nothing changes."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # 1: PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+    if main_process_gone():  # it died before the call
+        raise SystemExit(0)
+
+
 def receive(inbox: Any, poll_s: float = 1.0) -> Any:
     """The next message of a worker's inbox; ends the worker if the main process has died."""
     while True:
@@ -109,6 +125,7 @@ def _worker_main(
     outbox: Any,
     hurry: Any,
     ending: Any,
+    pausable: bool = False,
 ) -> None:
     """A worker process: build the core, answer every message, finish on EndOfStream.
 
@@ -119,9 +136,12 @@ def _worker_main(
     since the front end has finished by then. An unprivileged process cannot raise a priority
     it has lowered: measured beside two busy processes with the loop worker at nice 10
     throughout, the end of room-aggressive took 226 s. ``hurry`` (an event): the run was
-    interrupted; skip the backlog and finish at once.
+    interrupted; skip the backlog and finish at once. ``pausable``: the stage may stop it
+    (:func:`die_with_parent`).
     """
     ignore_stop_signals()
+    if pausable:
+        die_with_parent()
     name_this_process(f"slam-{role}")
     try:
         core = make_core(*args)
@@ -205,9 +225,11 @@ class WorkerProcess:
         role: str,
         idle: bool = False,
         start_timeout_s: float = 120.0,
+        pausable: bool = False,
     ):
         """``on_item(item) -> True`` for the worker's last item; ``on_died(exit code)`` when the
-        process ended without one."""
+        process ended without one; ``pausable``: :meth:`pause` may be used (the worker dies with
+        the thread that starts it here, see :func:`die_with_parent`)."""
         ctx = mp.get_context("spawn")
         self.name = name
         self.inbox: Any = ctx.Queue()
@@ -216,7 +238,17 @@ class WorkerProcess:
         self.ending: Any = ctx.Event()
         self.proc = ctx.Process(
             target=_worker_main,
-            args=(make_core, args, role, idle, self.inbox, self.outbox, self.hurry, self.ending),
+            args=(
+                make_core,
+                args,
+                role,
+                idle,
+                self.inbox,
+                self.outbox,
+                self.hurry,
+                self.ending,
+                pausable,
+            ),
             daemon=True,
             name=f"slam-{name}",
         )
@@ -267,6 +299,27 @@ class WorkerProcess:
     def begin_end(self) -> None:
         """The run is over: the worker's main thread takes over at full priority."""
         self.ending.set()
+
+    def pause(self) -> bool:
+        """Stop the whole process (SIGSTOP: every thread, inside native calls too) until
+        :meth:`resume`; True if it was stopped. For a worker started ``pausable``. Keep it short
+        and always resume: while stopped it may hold the lock of one of its events
+        (``ending``, ``hurry``), so the caller must not end it in between."""
+        if self.pid is None:
+            return False
+        try:
+            os.kill(self.pid, signal.SIGSTOP)
+        except OSError:  # already gone
+            return False
+        return True
+
+    def resume(self) -> None:
+        """Undo :meth:`pause` (SIGCONT)."""
+        if self.pid is not None:
+            try:
+                os.kill(self.pid, signal.SIGCONT)
+            except OSError:
+                pass
 
     def is_alive(self) -> bool:
         return self.proc.is_alive()
@@ -336,7 +389,9 @@ class ProcessStage(Stage):
         role: str,
         in_process: bool = True,
         idle: bool = False,
+        pausable: bool = False,
     ):
+        """``pausable``: the worker may be stopped for a while (:meth:`WorkerProcess.pause`)."""
         super().__init__(name, maxsize=maxsize, threaded=threaded)
         self.use_process = threaded and in_process
         self.final_seen = threading.Event()
@@ -350,7 +405,7 @@ class ProcessStage(Stage):
         self._core: WorkerCore | None = None
         if self.use_process:
             self._proc = WorkerProcess(
-                name, make_core, args, self._on_item, self._on_died, role, idle
+                name, make_core, args, self._on_item, self._on_died, role, idle, pausable=pausable
             )
         else:
             self._core = make_core(*args)
