@@ -290,12 +290,6 @@ PRESETS: dict[str, dict[str, Any]] = {
             "imu_accel_scale_error_of_deviation": True,
             "imu_accel_density_factor": 3.0,
             "mono_scale_check_window_s": 5.0,
-            # the start's alignment with its accelerometer bias nearly free, its scale's std up
-            # to 2.5 %: held at 0, V1_01's (real IMU, gentle take-off) alignments were 2-3 % off
-            # and their std 2.5-4.5 %, so the start came 18.9 s after the motion (BENCHMARKS.md,
-            # 2026-12-03 mono18b)
-            "mono_init_max_scale_std": 0.025,
-            "mono_init_accel_bias_sigma": 10.0,
         },
         # the monocular front end's KLT has no predicted start: its backward check as measured
         # (on the base level only, the initialisation came 0.15 s later in test_mono_pipeline)
