@@ -84,6 +84,12 @@ class BackendConfig:
     mono_init_max_scale_disagreement: float = bounded(0.1, gt=0)
     """Monocular start: reject the alignment when the first two thirds of its keyframes give
     a scale differing by more than this fraction (too little excitation to fix it)."""
+    mono_init_accel_bias_sigma: float = bounded(0.1, gt=0, unit="m/s^2")
+    """Monocular start: the prior holding the alignment's accelerometer bias near 0 (its row
+    weighed against the velocity-per-second rows). On gentle motion a small bias is much of
+    the acceleration that fixes the scale: held at 0, a 0.02 m/s^2 bias moved V1_01's first
+    scales 2-3 %. 10 (nearly free) starts V1_01 3 s after the motion instead of 19 s, but the
+    suite's four sequences came out worse with it (BENCHMARKS.md, mono18b): not the preset's."""
 
     mono_scale_check_window_s: float = bounded(0.0, ge=0)
     """Monocular, after the start: every ``mono_scale_check_every_s`` the smoother's keyframe

@@ -447,6 +447,7 @@ class VioBackend:
             cfg.imu_gap_max_s,
             cfg.mono_init_max_gravity_error,
             cfg.mono_init_max_scale_disagreement,
+            accel_bias_sigma_m_s2=cfg.mono_init_accel_bias_sigma,
             max_scale_std=cfg.mono_init_max_scale_std,
         )
         if res is None:
