@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from datasets import cdr
+from datasets.info import sequence_lines
 from datasets.mcap_io import McapSequence, write_sequence_mcap
 from datasets.memory import random_sequence
 from datasets.synth import make_synthetic_sequence
@@ -23,7 +24,9 @@ from slam.runtime.wiring import run_slam
 
 # auto-exposure over an illumination that swings fast: the exposure moves by milliseconds from
 # frame to frame (the aggressive profile is still for its first 2 s: one sub-frame per image)
-VARYING = CameraEffects(auto_exposure=True, illumination_log_amplitude=1.2, illumination_period_s=1.0)
+VARYING = CameraEffects(
+    auto_exposure=True, illumination_log_amplitude=1.2, illumination_period_s=1.0
+)
 
 
 @pytest.fixture(scope="module")
@@ -57,6 +60,8 @@ def test_mcap_round_trip_keeps_each_frame_exposure(varying, written: Path) -> No
     frames = [m for m in back.messages() if isinstance(m, StereoFrame)]
     assert [f.exposure_ns for f in frames] == varying.exposures_ns().tolist()
     assert [f.t_ns for f in frames] == varying.frame_times_ns().tolist()  # stamps untouched
+    n = back.num_frames
+    assert f"  exposure recorded for {n}/{n} frames" in "\n".join(sequence_lines(back))
     # through the reader process too (the images in shared memory, the exposure in the bundle)
     far = [m for m in prefetched_messages(McapSequence(written)) if isinstance(m, StereoFrame)]
     assert [f.exposure_ns for f in far] == varying.exposures_ns().tolist()
@@ -111,7 +116,7 @@ def test_the_pipeline_uses_the_middle_of_the_exposure(varying, tmp_path, mid_exp
     cfg.player.speed = 0.0
     cfg.player.mid_exposure = mid_exposure
     run_slam(varying, cfg, tmp_path / "run", progress=False)
-    t_ns = read_trajectory(tmp_path / "run" / "trajectory.tum").t_ns
+    t_ns = read_trajectory(tmp_path / "run" / "trajectory.tum").trajectory.t_ns
     stamps = varying.frame_times_ns()
     want = stamps - varying.exposures_ns() // 2 if mid_exposure else stamps
     np.testing.assert_array_equal(t_ns, want)
