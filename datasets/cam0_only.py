@@ -44,6 +44,9 @@ class Cam0Only(Sequence):
     def imu(self) -> ImuArrays:
         return self._src().imu()
 
+    def exposures_ns(self) -> np.ndarray | None:
+        return self._src().exposures_ns()
+
     def frame(self, index: int) -> StereoFrame:
         return dataclasses.replace(self._src().frame(index), right=None)
 

@@ -7,7 +7,8 @@ aligned to its own size relative to the end of that header). The tests check eve
 against rosbags' and mcap-ros2-support's independent deserializers.
 
 Supported: ``sensor_msgs/msg/Image``, ``sensor_msgs/msg/CompressedImage``, ``sensor_msgs/msg/Imu``,
-``sensor_msgs/msg/CameraInfo`` (encode only), ``geometry_msgs/msg/PoseStamped``.
+``sensor_msgs/msg/CameraInfo`` (encode only), ``geometry_msgs/msg/PoseStamped``,
+``sensor_msgs/msg/TimeReference`` (an image's exposure: :func:`encode_exposure`).
 """
 
 from __future__ import annotations
@@ -149,6 +150,22 @@ def encode_camera_info(
     for _ in range(4):  # roi x_offset, y_offset, height, width
         wr.u32(0)
     wr.u8(0)  # roi.do_rectify
+    return wr.getvalue()
+
+
+EXPOSURE_SOURCE = "exposure_start"
+
+
+def encode_exposure(t_ns: int, frame_id: str, exposure_ns: int) -> bytes:
+    """sensor_msgs/msg/TimeReference saying when an image's exposure began: header stamp =
+    the image's stamp (the end of its exposure), ``time_ref`` = that stamp minus the
+    exposure's duration, ``source`` = ``exposure_start``. A standard message (any ROS 2 tool
+    reads it); the duration is exact in integer ns."""
+    wr = _CdrWriter()
+    wr.header(t_ns, frame_id)
+    sec, nanosec = split_stamp(int(t_ns) - int(exposure_ns))
+    wr.raw("iI", 8, 4, sec, nanosec)
+    wr.string(EXPOSURE_SOURCE)
     return wr.getvalue()
 
 
@@ -310,6 +327,22 @@ def decode_pose_stamped(
     pos = r.f64s(3)
     x, y, z, w = r.f64s(4)
     return t_ns, pos, (w, x, y, z)
+
+
+def decode_exposure(data: bytes | memoryview) -> tuple[int, int]:
+    """:func:`encode_exposure`'s message -> (the image's stamp t_ns, exposure duration ns).
+    InputError for a TimeReference of another kind (``source`` not ``exposure_start``) or an
+    exposure start after the stamp."""
+    r = _CdrReader(data)
+    t_ns = r.header_ns()
+    sec, nanosec = r.unpack("iI", 8, 4)
+    source = r.string()
+    if source != EXPOSURE_SOURCE:
+        raise InputError(f"TimeReference source {source!r} is not {EXPOSURE_SOURCE!r}")
+    exposure_ns = t_ns - (int(sec) * 1_000_000_000 + int(nanosec))
+    if exposure_ns < 0:
+        raise InputError(f"exposure start after the image stamp ({exposure_ns} ns)")
+    return t_ns, exposure_ns
 
 
 def _imu_layout(data: bytes | memoryview) -> tuple[int, int]:

@@ -97,6 +97,14 @@ def sequence_lines(seq: Sequence) -> list[str]:
             f"m/s^2/sqrt(Hz), accel walk {m.accel_random_walk:.3e}"
         )
     lines.append(f"  time offset (t_imu = t_cam + offset): {cal.time_offset_ns * 1e-6:.3f} ms")
+    exposure = seq.exposures_ns()
+    if exposure is not None and np.any(exposure > 0):
+        e_ms = exposure[exposure > 0] * 1e-6
+        lines.append(
+            f"  exposure recorded for {len(e_ms)}/{len(ft)} frames: {e_ms.min():.2f} / "
+            f"{np.median(e_ms):.2f} / {e_ms.max():.2f} ms min / median / max (a run stamps "
+            "each image at its middle: player.mid_exposure)"
+        )
     gt = seq.ground_truth
     if gt is None or len(gt) == 0:
         lines.extend(ground_truth_hint(seq))

@@ -12,6 +12,8 @@ typestore), zstd chunks of ~4 MB with CRCs. Topics:
 ``/cam1/camera_info``  sensor_msgs/msg/CameraInfo
 ``/imu0``              sensor_msgs/msg/Imu            body (= IMU) frame, orientation unknown
 ``/groundtruth/pose``  geometry_msgs/msg/PoseStamped  world_from_body
+``/cam0/exposure``     sensor_msgs/msg/TimeReference  each image's exposure (optional): stamp =
+                                                      the image's, ``time_ref`` = its start
 =====================  ============================  ==========================================
 
 Metadata records: ``pyvislam.calibration`` (``json`` = ``Calibration.to_dict()``) and
@@ -19,6 +21,9 @@ Metadata records: ``pyvislam.calibration`` (``json`` = ``Calibration.to_dict()``
 ``start_ns``/``end_ns``, the log-time span: what the file will hold, as announced by the source
 sequence). They are written first, so a truncated file keeps them, and a reader can count what
 a cut lost (:meth:`datasets.mcap_scan.ScanResult.truncation_note`).
+The exposure topic is written only for a source that records exposures
+(:meth:`Sequence.exposures_ns`; a synthetic sequence with motion blur); files without it read as
+before (exposure unknown, ``StereoFrame.exposure_ns`` 0).
 Times: log time = publish time = ``t_ns`` in the IMU clock; camera header stamps are in the
 camera clock (``t_ns - calibration.time_offset_ns``), so reading adds the offset back.
 
@@ -44,10 +49,12 @@ from datasets import cdr
 from datasets.mcap_scan import COUNTS_KEY, END_KEY, START_KEY
 from datasets.ros2bag import (
     CALIBRATION_METADATA,
+    DEFAULT_EXPOSURE_TOPIC,
     DEFAULT_GT_TOPIC,
     DEFAULT_IMU_TOPIC,
     DEFAULT_LEFT_TOPIC,
     DEFAULT_RIGHT_TOPIC,
+    EXPOSURE_TYPE,
     SEQUENCE_METADATA,
     Ros2McapSequence,
     TopicSelection,
@@ -162,6 +169,8 @@ def _announced(seq: Sequence, n_cams: int) -> dict[str, str]:
     counts = {IMAGE_TOPICS[k]: n_frames for k in range(n_cams)}
     counts.update({CAMERA_INFO_TOPICS[k]: n_frames for k in range(n_cams)})
     counts[DEFAULT_IMU_TOPIC] = seq.num_imu
+    if seq.exposures_ns() is not None:
+        counts[DEFAULT_EXPOSURE_TOPIC] = n_frames
     gt = seq.ground_truth
     if gt is not None:
         counts[DEFAULT_GT_TOPIC] = len(gt)
@@ -218,6 +227,8 @@ def write_sequence_mcap(
         ]
         cid_img = [ch.channel(IMAGE_TOPICS[k], "sensor_msgs/msg/Image") for k in range(n_cams)]
         cid_imu = ch.channel(DEFAULT_IMU_TOPIC, "sensor_msgs/msg/Imu")
+        has_exposure = seq.exposures_ns() is not None
+        cid_exp = ch.channel(DEFAULT_EXPOSURE_TOPIC, EXPOSURE_TYPE) if has_exposure else 0
         gt = seq.ground_truth
         cid_gt = ch.channel(DEFAULT_GT_TOPIC, "geometry_msgs/msg/PoseStamped") if gt else 0
         window = _Window(writer, chunk_size_bytes)
@@ -231,6 +242,9 @@ def write_sequence_mcap(
                     fid = CAMERA_FRAME_IDS[k]
                     window.small(cid_info[k], t_ns, _camera_info(calib.cameras[k], t_cam, fid))
                     window.image(cid_img[k], t_ns, cdr.encode_image_mono8(t_cam, fid, img))
+                if has_exposure:
+                    data = cdr.encode_exposure(t_cam, CAMERA_FRAME_IDS[0], item.exposure_ns)
+                    window.small(cid_exp, t_ns, data)
             elif isinstance(item, ImuSample):
                 data = cdr.encode_imu(t_ns, IMU_FRAME_ID, item.gyro_rad_s, item.accel_m_s2)
                 window.small(cid_imu, t_ns, data)

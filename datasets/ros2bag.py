@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import os
+import struct
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -41,9 +42,11 @@ DEFAULT_LEFT_TOPIC = "/cam0/image_raw"
 DEFAULT_RIGHT_TOPIC = "/cam1/image_raw"
 DEFAULT_IMU_TOPIC = "/imu0"
 DEFAULT_GT_TOPIC = "/groundtruth/pose"
+DEFAULT_EXPOSURE_TOPIC = "/cam0/exposure"
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 IMU_TYPE = "sensor_msgs/msg/Imu"
+EXPOSURE_TYPE = "sensor_msgs/msg/TimeReference"
 POSE_TYPES = (
     "geometry_msgs/msg/PoseStamped",
     "geometry_msgs/msg/PoseWithCovarianceStamped",
@@ -58,12 +61,15 @@ NO_CALIBRATION_HINT = (
 
 @dataclass(frozen=True)
 class TopicSelection:
-    """Which topics hold what. ``None`` right/imu/gt topics mean: not used."""
+    """Which topics hold what. ``None`` right/imu/gt/exposure topics mean: not used.
+    ``exposure``: the left camera's exposure per image (``sensor_msgs/msg/TimeReference`` as
+    :func:`datasets.cdr.encode_exposure` writes it), read when present, else unknown."""
 
     left: str = DEFAULT_LEFT_TOPIC
     right: str | None = DEFAULT_RIGHT_TOPIC
     imu: str | None = DEFAULT_IMU_TOPIC
     gt: str | None = DEFAULT_GT_TOPIC
+    exposure: str | None = DEFAULT_EXPOSURE_TOPIC
 
 
 def embedded_calibration(scan: ScanResult) -> Calibration | None:
@@ -195,6 +201,7 @@ class Ros2McapSequence(Sequence):
             self._right_msg = None
             frame_t = left_t
         self._frame_t_ns = frame_t + offset_ns
+        self._exposure_ns = self._read_exposure(topics.exposure, frame_t, warnings)
         if len(self._frame_t_ns) == 0:
             raise InputError(f"{self.path}: no readable camera frames on {left}")
 
@@ -286,6 +293,39 @@ class Ros2McapSequence(Sequence):
             warnings.append(gap_note)
         return ImuArrays(t, np.ascontiguousarray(vals[:, :3]), np.ascontiguousarray(vals[:, 3:]))
 
+    def _read_exposure(
+        self, topic: str | None, frame_t: np.ndarray, warnings: list[str]
+    ) -> np.ndarray | None:
+        """Each frame's exposure (ns; 0 where no message has its stamp), from ``topic`` (see
+        :class:`TopicSelection`), or None when the file has no such topic. ``frame_t``: the
+        frames' camera stamps. A topic of another type or form is warned about and unused."""
+        s = self.scan
+        present = s.topics()
+        if topic is None or topic not in present:
+            return None
+        if present[topic][0] != EXPOSURE_TYPE:
+            warnings.append(
+                f"{topic} has type {present[topic][0]}, not {EXPOSURE_TYPE}: exposure unknown"
+            )
+            return None
+        msgs = np.nonzero(np.isin(s.msg_channel, s.channel_ids(topic)))[0]
+        try:
+            pairs = np.array([cdr.decode_exposure(s.heads[i]) for i in msgs], np.int64)
+        except (InputError, struct.error) as exc:
+            warnings.append(f"{topic}: unreadable ({exc}): exposure unknown")
+            return None
+        exposure = np.zeros(len(frame_t), np.int64)
+        if len(pairs):
+            pairs = pairs[np.argsort(pairs[:, 0], kind="stable")]
+            stamps, durations = pairs[:, 0], pairs[:, 1]
+            at = np.clip(np.searchsorted(stamps, frame_t), 0, len(stamps) - 1)
+            found = stamps[at] == frame_t
+            exposure[found] = durations[at[found]]
+            missing = int(len(frame_t) - found.sum())
+            if missing:
+                warnings.append(f"{topic}: {missing} frames have no exposure (taken as unknown)")
+        return exposure
+
     def _read_gt(self, topic: str, warnings: list[str]) -> Trajectory | None:
         s = self.scan
         msgs = np.nonzero(np.isin(s.msg_channel, s.channel_ids(topic)))[0]
@@ -321,12 +361,17 @@ class Ros2McapSequence(Sequence):
     def imu(self) -> ImuArrays:
         return self._imu
 
+    def exposures_ns(self) -> np.ndarray | None:
+        return self._exposure_ns
+
     def _decode(self, cache: ChunkCache, index: int) -> StereoFrame:
         left = self._left_decode(cache.payload(int(self._left_msg[index])))
         right = None
         if self._right_msg is not None:
             right = self._right_decode(cache.payload(int(self._right_msg[index])))
-        return StereoFrame(t_ns=int(self._frame_t_ns[index]), left=left, right=right, index=index)
+        exposure_ns = 0 if self._exposure_ns is None else int(self._exposure_ns[index])
+        t_ns = int(self._frame_t_ns[index])
+        return StereoFrame(t_ns, left, right, index, exposure_ns=exposure_ns)
 
     def frame(self, index: int) -> StereoFrame:
         if not 0 <= index < len(self._frame_t_ns):
@@ -403,6 +448,8 @@ class Ros2McapSequence(Sequence):
                 if self._right_msg is not None:
                     self._right_msg = self._right_msg[~lost]
                 self._frame_t_ns = self._frame_t_ns[~lost]
+                if self._exposure_ns is not None:
+                    self._exposure_ns = self._exposure_ns[~lost]
         self._corrupt_chunks = bad
         return len(bad)
 

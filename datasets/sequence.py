@@ -59,6 +59,11 @@ class Sequence(ABC):
     def frame(self, index: int) -> StereoFrame:
         """Random access to one camera frame (decoded)."""
 
+    def exposures_ns(self) -> np.ndarray | None:
+        """Each frame's exposure duration (int64 ns, one per ``frame_times_ns``; frames carry
+        theirs as ``StereoFrame.exposure_ns``), or None: the source does not record it."""
+        return None
+
     # --- derived -----------------------------------------------------------------------------
     def iter_frames(self) -> Iterator[StereoFrame]:
         """Frames in time order. Subclasses may override with a faster streaming read."""

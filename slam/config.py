@@ -219,6 +219,11 @@ class PlayerConfig:
     OpenCV call the front end makes releases the GIL; getting it back from a thread running
     Python (the player decoding, a queue feeder pickling) can take up to this long, several
     times per frame. A shorter interval trades a little throughput for front-end latency."""
+    mid_exposure: bool = True
+    """Stamp each frame whose exposure the sequence records (``StereoFrame.exposure_ns``) at
+    the middle of its exposure, the time its image shows, rather than the driver's stamp at its
+    end (:func:`slam.runtime.player.at_mid_exposure`). Sequences without exposures are
+    unaffected."""
     idle_workers: bool = False
     """Run the loop-closure (and mapper) processes under Linux's SCHED_IDLE policy: on an
     otherwise idle machine a waking front end preempts them at once, but while other

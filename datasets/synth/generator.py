@@ -131,15 +131,24 @@ class SyntheticSequence(Sequence):
     def imu(self) -> ImuArrays:
         return self._imu
 
+    def exposures_ns(self) -> np.ndarray | None:
+        """The exposure each image integrates over (motion blur over ``[stamp - E, stamp]``),
+        ns; None when images are instantaneous (no blur: they show the scene at the stamp)."""
+        if not self.options.camera.blurs:
+            return None
+        return np.round(self.exposure.exposure_s * 1e9).astype(np.int64)
+
     def frame(self, index: int) -> StereoFrame:
         t_ns = int(self._frame_times_ns[index])
+        exposures = self.exposures_ns()
+        exposure_ns = 0 if exposures is None else int(exposures[index])
         if self.is_blacked_out(index):
             shape = (
                 self.calibration.cam0.intrinsics.height,
                 self.calibration.cam0.intrinsics.width,
             )
             black = np.zeros(shape, np.uint8)
-            return StereoFrame(t_ns=t_ns, left=black, right=black.copy(), index=index)
+            return StereoFrame(t_ns, black, black.copy(), index, exposure_ns=exposure_ns)
         if self.options.camera.active:
             images = self._camera_images(index)
         else:
@@ -148,7 +157,7 @@ class SyntheticSequence(Sequence):
         if self.options.pixel_noise_std > 0:
             images = [self._add_pixel_noise(img, index, k) for k, img in enumerate(images)]
         right = images[1] if len(images) > 1 else None
-        return StereoFrame(t_ns=t_ns, left=images[0], right=right, index=index)
+        return StereoFrame(t_ns, images[0], right, index, exposure_ns=exposure_ns)
 
     def content_time_ns(self, index: int) -> int:
         """IMU-clock time the image of frame ``index`` shows (the end of its exposure): its

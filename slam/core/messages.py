@@ -34,6 +34,10 @@ class StereoFrame:
     right: np.ndarray | None  # (H, W) uint8, cam1, or None for mono
     index: int = -1  # frame number within the sequence, -1 when unknown
     time_offset_ns: int = 0  # added to the camera stamp by the player (online time offset)
+    exposure_ns: int = 0
+    """The exposure's duration, ns (0: unknown). A reader's ``t_ns`` is the end of the
+    exposure (the usual driver stamp); the image shows the scene as it was at its middle, where
+    the player restamps it (``player.mid_exposure``, :func:`slam.runtime.player.at_mid_exposure`)."""
 
 
 SensorMessage = ImuSample | StereoFrame
@@ -64,7 +68,7 @@ class Keyframe:
     """False for a monocular front end's keyframes before the back end fixed the scale: its
     VO poses and points are up to scale (the back end's alignment uses them; the loop closer
     and the mapper skip them)."""
-    time_offset_ns: int = 0  # its frame's: t_ns minus this is the camera's stamp
+    time_offset_ns: int = 0  # its frame's: t_ns minus this is the camera's (mid-exposure) stamp
     previous_keyframe_id: int = -1
     # that keyframe's pose in this one's VO frame (moved by the corrections since), or None
     previous_keyframe_world_from_body: np.ndarray | None = None
@@ -432,6 +436,7 @@ class ReaderBundle:
     slot: int = -1  # -1: the images are inline
     shapes: tuple[tuple[int, ...], ...] = ()
     inline: tuple[np.ndarray | None, ...] = ()
+    exposure_ns: int = 0  # the frame's (``StereoFrame.exposure_ns``)
 
 
 @dataclass(frozen=True)

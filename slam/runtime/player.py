@@ -36,6 +36,30 @@ class PlayState:
         return 0.0 if self.t_first_ns is None else (self.t_last_ns - self.t_first_ns) * 1e-9
 
 
+def at_mid_exposure(
+    messages: Iterator[ImuSample | StereoFrame],
+) -> Iterator[ImuSample | StereoFrame]:
+    """``messages`` with every frame of known exposure stamped at the middle of it,
+    ``t_ns - exposure_ns // 2``: the time its image shows (a driver stamps the end of the
+    exposure; the scene moves during it, and the image, blurred or not, shows it on average
+    at the middle). Everything downstream (the front end's IMU prediction, the back end's
+    preintegration and time offset, the outputs) then uses that time. Auto-exposure moves the
+    middle by milliseconds from frame to frame, which no constant time offset follows.
+    Frames of unknown exposure (0) keep their stamp; stamps stay increasing."""
+    last_ns = -(2**62)
+    try:
+        for msg in messages:
+            if isinstance(msg, StereoFrame) and msg.exposure_ns > 0:
+                t_ns = max(msg.t_ns - msg.exposure_ns // 2, last_ns + 1)
+                msg = dataclasses.replace(msg, t_ns=t_ns)
+            if isinstance(msg, StereoFrame):
+                last_ns = msg.t_ns
+            yield msg
+    finally:
+        if isinstance(messages, Generator):
+            messages.close()
+
+
 def restamped(
     messages: Iterator[ImuSample | StereoFrame], offset_ns: Callable[[], int]
 ) -> Iterator[ImuSample | StereoFrame]:

@@ -49,13 +49,14 @@ def _pack(
         im.dtype == np.uint8 for im in images
     )
     if slot < 0 or not fits:
-        return ReaderBundle(batch, frame.t_ns, frame.index, -1, (), (frame.left, frame.right))
+        inline = (frame.left, frame.right)
+        return ReaderBundle(batch, frame.t_ns, frame.index, -1, (), inline, frame.exposure_ns)
     offset = slot * slot_bytes
     for im in images:
         np.ndarray(im.shape, np.uint8, ring.buf, offset)[...] = im
         offset += im.nbytes
     shapes = tuple(im.shape for im in images)
-    return ReaderBundle(batch, frame.t_ns, frame.index, slot, shapes)
+    return ReaderBundle(batch, frame.t_ns, frame.index, slot, shapes, (), frame.exposure_ns)
 
 
 def _reader(
@@ -129,7 +130,7 @@ def _unpack(bundle: ReaderBundle, ring: Any, slot_bytes: int) -> list[ImuSample 
             offset += im.nbytes
             images.append(im)
         left, right = images[0], images[1] if len(images) > 1 else None
-    msgs.append(StereoFrame(bundle.t_ns, left, right, bundle.index))
+    msgs.append(StereoFrame(bundle.t_ns, left, right, bundle.index, exposure_ns=bundle.exposure_ns))
     return msgs
 
 

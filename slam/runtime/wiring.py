@@ -45,7 +45,7 @@ from slam.runtime.frontend import FrontendStage
 from slam.runtime.loop import LoopClosureStage
 from slam.runtime.mapper import MapperStage
 from slam.runtime.memory import TreeMemory
-from slam.runtime.player import play, restamped
+from slam.runtime.player import at_mid_exposure, play, restamped
 from slam.runtime.reader import prefetched_messages
 from slam.runtime.recorder import Recorder
 from slam.runtime.report import Run, RunResult
@@ -228,6 +228,8 @@ def _run(
         if threaded and cfg.player.reader_process
         else iter(seq.messages())
     )
+    if cfg.player.mid_exposure:
+        messages = at_mid_exposure(messages)
     if p.backend is not None and cfg.backend.time_offset_online:
         messages = restamped(messages, p.backend.time_offset_ns)
     try:
