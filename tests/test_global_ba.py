@@ -210,6 +210,27 @@ def test_thinning_by_track_keeps_each_pass_share() -> None:
     assert _thinned(fused, t, kf, 4, 2).all()
 
 
+def test_shared_limit_spreads_a_fused_landmark_over_its_tracks() -> None:
+    """One fused landmark over 20 tracks of 10 keyframes each (a small room's passes), each
+    keyframe with 2 other landmarks: per track alone it keeps all 200 rows; with 40 shared
+    (``max_observations_per_landmark``: 40 // 20 = 2 per track) each track keeps its first and
+    last keyframe, 40 in all; the other landmarks keep theirs."""
+    n = 200
+    kf = np.concatenate([np.arange(n), np.repeat(np.arange(n), 2)])
+    t = kf * 100
+    others = np.arange(1000, 1000 + 2 * n)
+    track = np.concatenate([np.repeat(np.arange(20), 10), others])
+    per_row = np.where(np.arange(len(kf)) < n, 40 // 20, 10)
+    alone = _thinned(track, t, kf, 10, 1)
+    shared = _thinned(track, t, kf, per_row, 1)
+    assert alone[:n].all()
+    assert shared[:n].sum() == 40
+    first_last = np.zeros(n, bool)
+    first_last[0::10] = first_last[9::10] = True
+    assert np.array_equal(shared[:n], first_last)
+    assert shared[n:].all()
+
+
 def test_thinned_by_track_on_the_loop(loop_world) -> None:
     """Thinned per track, the revisit's observations stay: more observations than per fused
     landmark, the drift removed as well."""
