@@ -30,16 +30,23 @@ def _running(pid: int) -> bool:
     return "State:\tZ" not in state  # a zombie has exited (nobody reaped it yet)
 
 
-def test_worker_ends_when_the_main_process_is_killed(tmp_path: Path) -> None:
+def _worker_left_running(tmp_path: Path, main_script: str) -> int | None:
+    """Run ``main_script`` (it prints its worker's pid, then SIGKILLs itself); the worker's
+    pid if it is still running 10 s later, else None."""
     script = tmp_path / "main.py"
-    script.write_text(SCRIPT)
+    script.write_text(main_script)
     proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
     assert proc.returncode == -9
     pid = int(proc.stdout.split()[0])
     deadline = time.monotonic() + 10.0
     while _running(pid) and time.monotonic() < deadline:
         time.sleep(0.1)
-    assert not _running(pid), f"worker {pid} outlived its killed main process"
+    return pid if _running(pid) else None
+
+
+def test_worker_ends_when_the_main_process_is_killed(tmp_path: Path) -> None:
+    pid = _worker_left_running(tmp_path, SCRIPT)
+    assert pid is None, f"worker {pid} outlived its killed main process"
 
 
 STOPPED = """
@@ -64,12 +71,5 @@ if __name__ == "__main__":
 def test_stopped_worker_ends_when_the_main_process_is_killed(tmp_path: Path) -> None:
     """A pausable worker (the mapper, stopped while the front end tracks a frame) cannot poll
     for its parent while stopped: the kernel kills it with its parent (PR_SET_PDEATHSIG)."""
-    script = tmp_path / "main.py"
-    script.write_text(STOPPED)
-    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
-    assert proc.returncode == -9
-    pid = int(proc.stdout.split()[0])
-    deadline = time.monotonic() + 10.0
-    while _running(pid) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert not _running(pid), f"stopped worker {pid} outlived its killed main process"
+    pid = _worker_left_running(tmp_path, STOPPED)
+    assert pid is None, f"stopped worker {pid} outlived its killed main process"

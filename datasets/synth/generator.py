@@ -115,6 +115,11 @@ class SyntheticSequence(Sequence):
             self.motion_time_s(self._frame_times_ns + options.time_offset_ns),
             options.seed,
         )
+        self._exposures_ns = (
+            np.round(self.exposure.exposure_s * 1e9).astype(np.int64)
+            if options.camera.blurs
+            else None
+        )
         self._vignetting: list[np.ndarray] | None = None
         self.gyro_agreement: GyroAgreement | None = None  # a real IMU against the motion
 
@@ -134,14 +139,11 @@ class SyntheticSequence(Sequence):
     def exposures_ns(self) -> np.ndarray | None:
         """The exposure each image integrates over (motion blur over ``[stamp - E, stamp]``),
         ns; None when images are instantaneous (no blur: they show the scene at the stamp)."""
-        if not self.options.camera.blurs:
-            return None
-        return np.round(self.exposure.exposure_s * 1e9).astype(np.int64)
+        return self._exposures_ns
 
     def frame(self, index: int) -> StereoFrame:
         t_ns = int(self._frame_times_ns[index])
-        exposures = self.exposures_ns()
-        exposure_ns = 0 if exposures is None else int(exposures[index])
+        exposure_ns = 0 if self._exposures_ns is None else int(self._exposures_ns[index])
         if self.is_blacked_out(index):
             shape = (
                 self.calibration.cam0.intrinsics.height,
