@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from slam.core.calibration import Calibration
-from slam.core.messages import ImuSample, StereoFrame
+from slam.core.messages import ImuSample, StereoFrame, mid_exposure_ns
 from slam.core.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
@@ -65,6 +65,13 @@ class Sequence(ABC):
         return None
 
     # --- derived -----------------------------------------------------------------------------
+    def image_times_ns(self) -> np.ndarray:
+        """The time each frame's image shows (:func:`slam.core.messages.mid_exposure_ns`: the
+        middle of its exposure where the source records it, else its stamp), int64 ns."""
+        times = self.frame_times_ns()
+        exposures = self.exposures_ns()
+        return times if exposures is None else mid_exposure_ns(times, exposures)
+
     def iter_frames(self) -> Iterator[StereoFrame]:
         """Frames in time order. Subclasses may override with a faster streaming read."""
         for i in range(len(self.frame_times_ns())):

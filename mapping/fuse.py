@@ -330,7 +330,7 @@ def fuse_sequence(
         trajectory = seq.ground_truth
         source += " on ground-truth poses"
         log.info("no --trajectory: using the sequence's ground truth")
-    times = seq.frame_times_ns()
+    times = seq.image_times_ns()  # the middle of each exposure, as `slam run` stamps
     ids = np.arange(0, len(times), max(1, every))
     if max_frames is not None:
         ids = ids[:max_frames]
@@ -342,9 +342,7 @@ def fuse_sequence(
         if not np.all(np.isfinite(poses[n])):
             continue
         frame = seq.frame(int(i))
-        rep = mapper.add_keyframe(
-            int(frame.t_ns), frame.left, frame.right, poses[n] @ body_from_cam0
-        )
+        rep = mapper.add_keyframe(int(times[i]), frame.left, frame.right, poses[n] @ body_from_cam0)
         result.depth_ms.append(rep.depth_ms)
         result.fusion_ms.append(rep.fusion_ms)
         result.frames_used += 1

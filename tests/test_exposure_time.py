@@ -120,3 +120,29 @@ def test_the_pipeline_uses_the_middle_of_the_exposure(varying, tmp_path, mid_exp
     stamps = varying.frame_times_ns()
     want = stamps - varying.exposures_ns() // 2 if mid_exposure else stamps
     np.testing.assert_array_equal(t_ns, want)
+
+
+def test_sequence_image_times_are_the_middle_of_each_exposure(varying) -> None:
+    want = varying.frame_times_ns() - varying.exposures_ns() // 2
+    np.testing.assert_array_equal(varying.image_times_ns(), want)
+    assert [f.mid_exposure_ns for f in varying.iter_frames()] == want.tolist()
+    clean = make_synthetic_sequence("aggressive", 0.2, 3)  # no exposure recorded: the stamps
+    np.testing.assert_array_equal(clean.image_times_ns(), clean.frame_times_ns())
+
+
+def test_fuse_poses_each_image_at_the_middle_of_its_exposure(varying, written, monkeypatch) -> None:
+    """`slam fuse` looks up each image's pose at the time it shows, as `slam run` stamps it."""
+    from mapping.fuse import fuse_sequence
+    from mapping.mapper import DenseMapper, MapperConfig
+
+    seen: list[int] = []
+    add = DenseMapper.add_keyframe
+
+    def spy(self, t_ns, *args, **kwargs):  # type: ignore[no-untyped-def]
+        seen.append(t_ns)
+        return add(self, t_ns, *args, **kwargs)
+
+    monkeypatch.setattr(DenseMapper, "add_keyframe", spy)
+    fuse_sequence(written, None, MapperConfig(), every=3, max_frames=3, progress=False)
+    # frame 0 shows the scene before the ground truth's first pose: no pose, skipped
+    assert seen == varying.image_times_ns()[[3, 6]].tolist()

@@ -29,7 +29,9 @@ The offset is where the two rotation rates correlate best (1 ms grid, parabola t
 peak), refined on the whole rotation vectors; the rotation is the least-squares (SVD) rotation
 between the gyro's and the camera's rotation vectors (hand-eye). Spreads are bootstrapped over
 frame pairs. The offset is reported on top of the one the calibration already applies, in
-Kalibr's convention (an image stamped t shows the scene at IMU time t + offset).
+Kalibr's convention (an image stamped t shows the scene at IMU time t + offset). Where the
+recording gives each image's exposure (our MCAP's /cam0/exposure), an image is taken at the
+middle of it, as `slam run` does, so the offset is what is left beyond the exposure.
 
 Needs rotation: 20 s or more of the rig turned back and forth about at least two axes (0.5-2
 rad/s), sharp textured images. A still recording, rotation about one axis only, or an offset
@@ -78,7 +80,7 @@ def run_check(args: argparse.Namespace) -> int:
             if t_stop is not None and frame.t_ns > t_stop:
                 break
             bar.update(1)
-            yield frame.t_ns, frame.left
+            yield frame.mid_exposure_ns, frame.left  # the time the image shows
         bar.close()
 
     result = check_calibration(

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
@@ -25,6 +25,9 @@ class ImuSample:
     accel_m_s2: np.ndarray  # (3,) specific force, m/s^2 (gravity included, +9.81 up when still)
 
 
+IntOrArray = TypeVar("IntOrArray", int, np.ndarray)
+
+
 @dataclass(frozen=True, eq=False)
 class StereoFrame:
     """A (possibly mono) camera frame, images as 8-bit grey, time in the IMU clock."""
@@ -38,6 +41,20 @@ class StereoFrame:
     """The exposure's duration, ns (0: unknown). A reader's ``t_ns`` is the end of the
     exposure (the usual driver stamp); the image shows the scene as it was at its middle, where
     the player restamps it (``player.mid_exposure``, :func:`slam.runtime.player.at_mid_exposure`)."""
+
+    @property
+    def mid_exposure_ns(self) -> int:
+        """The time its image shows: :func:`mid_exposure_ns` of its stamp and exposure."""
+        return int(mid_exposure_ns(self.t_ns, self.exposure_ns))
+
+
+def mid_exposure_ns(t_ns: IntOrArray, exposure_ns: IntOrArray) -> IntOrArray:
+    """The middle of an exposure that ends at ``t_ns`` (an unknown exposure, 0: ``t_ns``).
+
+    The scene moves while the shutter is open, and the image, blurred or not, shows it on
+    average at the middle: every tool that pairs an image with a pose or an IMU reading
+    (the player, ``slam calib check``, ``slam fuse``) uses this time, not the driver's stamp."""
+    return t_ns - exposure_ns // 2
 
 
 SensorMessage = ImuSample | StereoFrame

@@ -39,10 +39,9 @@ class PlayState:
 def at_mid_exposure(
     messages: Iterator[ImuSample | StereoFrame],
 ) -> Iterator[ImuSample | StereoFrame]:
-    """``messages`` with every frame of known exposure stamped at the middle of it,
-    ``t_ns - exposure_ns // 2``: the time its image shows (a driver stamps the end of the
-    exposure; the scene moves during it, and the image, blurred or not, shows it on average
-    at the middle). Everything downstream (the front end's IMU prediction, the back end's
+    """``messages`` with every frame of known exposure stamped at the middle of it
+    (:func:`slam.core.messages.mid_exposure_ns`: the time its image shows; a driver stamps
+    the end of the exposure). Everything downstream (the front end's IMU prediction, the back end's
     preintegration and time offset, the outputs) then uses that time. Auto-exposure moves the
     middle by milliseconds from frame to frame, which no constant time offset follows.
     Frames of unknown exposure (0) keep their stamp; stamps stay increasing."""
@@ -50,7 +49,7 @@ def at_mid_exposure(
     try:
         for msg in messages:
             if isinstance(msg, StereoFrame) and msg.exposure_ns > 0:
-                t_ns = max(msg.t_ns - msg.exposure_ns // 2, last_ns + 1)
+                t_ns = max(msg.mid_exposure_ns, last_ns + 1)
                 msg = dataclasses.replace(msg, t_ns=t_ns)
             if isinstance(msg, StereoFrame):
                 last_ns = msg.t_ns
