@@ -46,5 +46,35 @@ def test_continuous_odometry_undoes_the_front_ends_corrections() -> None:
     chain = rec.continuous_odometry(len(truth))
     np.testing.assert_allclose(chain, np.array([reframe @ p for p in truth]), atol=1e-12)
     np.testing.assert_allclose(rec.continuous_odometry(6), chain[:6], atol=0)
+    assert rec.correction_frames(len(truth)).tolist() == [4, 8]  # not the change of frame
+    assert rec.correction_frames(6).tolist() == [4]
     published = rec.snapshot()[0].matrices()
     assert np.abs(published[10] - chain[10]).max() > 0.05
+
+
+def test_bridged_chain_removes_the_step_a_correction_left() -> None:
+    """A smooth flight at 20 Hz; after two corrections the front end's frames are off by
+    what the undone move did not carry (8 and 12 mm, as a re-anchoring's landmarks leave): the
+    bridged chain follows the true motion again, to well under a millimetre, and leaves
+    frames before the first correction and across a new map segment alone."""
+    from slam.loop.closer import bridge_corrections
+
+    t = np.arange(60) * 0.05
+    truth = np.array(
+        [_pose(np.array([0.0, 0.0, 0.4 * s]), np.array([np.cos(s), np.sin(s), 0.1 * s])) for s in t]
+    )
+    chain = truth.copy()
+    chain[20:, :3, 3] += [0.008, 0.0, 0.0]  # left by the correction at frame 20
+    chain[41:, :3, 3] += [0.0, -0.012, 0.0]  # and at frame 41
+    segments = np.zeros(60, dtype=int)
+    bridged = bridge_corrections(chain, np.array([20, 41]), segments)
+    # the steps are gone: every frame-to-frame motion within 0.5 mm of the truth's
+    error = np.diff(bridged[:, :3, 3], axis=0) - np.diff(truth[:, :3, 3], axis=0)
+    assert np.abs(np.diff(chain[:, :3, 3], axis=0) - np.diff(truth[:, :3, 3], axis=0)).max() > 0.007
+    assert np.abs(error).max() < 5e-4
+    np.testing.assert_array_equal(bridged[:20], chain[:20])
+    np.testing.assert_array_equal(bridged[:, :3, :3], chain[:, :3, :3])  # rotations untouched
+    # a correction at the first frame of a new map segment: no motion across it to bridge
+    segments[41:] = 1
+    np.testing.assert_array_equal(bridge_corrections(chain, np.array([41]), segments), chain)
+    np.testing.assert_array_equal(bridge_corrections(chain, np.array([], int), segments), chain)

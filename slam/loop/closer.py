@@ -1093,6 +1093,45 @@ def _rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     return out
 
 
+def bridge_corrections(
+    world_from_body: np.ndarray,
+    corrected_at: np.ndarray,
+    segment_ids: np.ndarray,
+    max_gap: int = 3,
+) -> np.ndarray:
+    """The odometry chain ``world_from_body`` (N, 4, 4) with the translation of each
+    frame-to-frame motion across a front-end correction (``corrected_at``: indices of the
+    first frames tracked in a world the front end had just moved) replaced by the mean of the
+    nearest uncorrupted motions before and after it (within ``max_gap`` frames, same segment);
+    every later frame moves with it. Undoing a correction's rigid transform
+    (:meth:`slam.runtime.recorder.Recorder.continuous_odometry`) is exact only for the part of
+    the move that was rigid: map reuse and re-anchoring also make the next frames track
+    landmarks that the move did not carry, and the undone chain stepped by up to 14 mm at such
+    frames on room-loop (loop-closed frames between keyframes 1.06 mm ATE, keyframes 0.76;
+    bridged 0.80; BENCHMARKS.md). Rotations are left as they are."""
+    out = np.array(world_from_body, dtype=float, copy=True)
+    n = len(out)
+    if n < 3 or len(corrected_at) == 0:
+        return out
+    seg = np.asarray(segment_ids)
+    bad = np.zeros(n, dtype=bool)  # bad[i]: the motion from frame i - 1 to i is corrupted
+    bad[np.asarray(corrected_at, dtype=np.int64)[(corrected_at > 0) & (corrected_at < n)]] = True
+    bad[0] = True
+    bad[1:] |= seg[1:] != seg[:-1]  # no motion across a segment boundary
+    motion = np.zeros((n, 3))
+    motion[1:] = out[1:, :3, 3] - out[:-1, :3, 3]
+    step = np.zeros((n, 3))
+    for i in (np.flatnonzero(bad[1:]) + 1).tolist():
+        if seg[i] != seg[i - 1]:
+            continue
+        before = [j for j in range(i - 1, max(0, i - 1 - max_gap), -1) if not bad[j]][:1]
+        after = [j for j in range(i + 1, min(n, i + 1 + max_gap)) if not bad[j]][:1]
+        if before and after and seg[before[0]] == seg[i] == seg[after[0]]:
+            step[i] = 0.5 * (motion[before[0]] + motion[after[0]]) - motion[i]
+    out[:, :3, 3] += np.cumsum(step, axis=0)
+    return out
+
+
 def loop_closed_poses(
     frame_t_ns: np.ndarray,
     frame_segment_ids: np.ndarray,

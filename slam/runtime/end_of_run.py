@@ -14,7 +14,7 @@ import numpy as np
 
 from slam.core.geometry import invert_transform, poses_to_matrices
 from slam.core.trajectory import Trajectory
-from slam.loop.closer import loop_closed_poses
+from slam.loop.closer import bridge_corrections, loop_closed_poses
 from slam.runtime.backend import BackendStage
 from slam.runtime.loop import LoopClosureStage
 from slam.runtime.outputs import trajectory_from_poses
@@ -78,15 +78,19 @@ def loop_closed_trajectory(
     # end made after it (re-anchoring on the back end's estimate of that keyframe, map reuse:
     # up to 2.3 cm on room-loop, 5 cm on the hall) carried that move into the frames up to
     # the next keyframe (BENCHMARKS.md, "Loop-closed ATE since the restructure").
+    # And across each correction, the frame-to-frame motion from the frames around it
+    # (bridge_corrections: the undone move is exact only for its rigid part).
     frame_at = {int(t): i for i, t in enumerate(traj.t_ns.tolist())}
-    frame_poses = recorder.continuous_odometry(len(traj))
+    segments = recorder.segments_of_first(len(traj))
+    frame_poses = bridge_corrections(
+        recorder.continuous_odometry(len(traj)), recorder.correction_frames(len(traj)), segments
+    )
     for k in kids:
         i = frame_at.get(int(t_ns_of[k]))
         if i is not None and k in corrected:
             corrections[k] = corrected[k] @ invert_transform(frame_poses[i])
     kf_t = np.array([t_ns_of[k] for k in kids], dtype=np.int64)
     kf_seg = np.array([segment_of[k] for k in kids])
-    segments = recorder.segments_of_first(len(traj))
     poses = loop_closed_poses(
         traj.t_ns,
         segments,

@@ -178,6 +178,13 @@ class Recorder:
                 poses[start:end] = first_from_world @ poses[start:end]
         return poses
 
+    def correction_frames(self, n: int) -> np.ndarray:
+        """Indices (< ``n``) of the first poses recorded in a world the front end had just
+        moved (its corrections after its change of frame), increasing."""
+        with self._lock:
+            starts = {i for i, _ in self.world_changes if i < n}
+        return np.array(sorted(starts), dtype=np.int64)
+
     def live(self) -> Trajectory:
         """Every frame's live pose in the loop-corrected map, as published so far."""
         with self._lock:
