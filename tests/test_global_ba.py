@@ -16,6 +16,7 @@ from slam.loop.global_ba import (
     GlobalBaParams,
     KeyframeObservations,
     _fuse,
+    _outlier_limit,
     _spread_rows,
     _thinned,
     global_bundle_adjustment,
@@ -255,3 +256,47 @@ def test_thinned_by_track_on_the_loop(loop_world) -> None:
     for r in (track, landmark):
         pos = np.array([r.world_from_body[k][:3, 3] for k in poses])
         assert ate_se3_rmse_m(pos, true[:, :3, 3]) < 0.01
+
+
+def test_outliers_judged_by_the_errors_own_sigma(loop_world) -> None:
+    """Tracks 0.6-2 px off (blur, gain steps: a heavier tail than the 0.2 px noise) are inside
+    a fixed 3 px outlier threshold; judged against the round's robust sigma they are dropped,
+    and the adjusted keyframes come out closer to the truth."""
+    calib, obs, true, odom, edges, pairs, t_ns = loop_world
+    rng = np.random.default_rng(7)
+    bad: dict[int, KeyframeObservations] = {}
+    n_bad = 0
+    for k, o in obs.items():
+        left, right = o.left_px.copy(), o.right_px.copy()
+        for px in (left, right):
+            hit = rng.random(len(px)) < 0.15
+            angle = rng.uniform(0, 2 * np.pi, hit.sum())
+            size = rng.uniform(0.6, 2.0, hit.sum())
+            px[hit] += np.column_stack([np.cos(angle), np.sin(angle)]) * size[:, None]
+            n_bad += int(hit.sum())
+        bad[k] = KeyframeObservations(o.landmark_ids, left, right, o.points_cam0)
+    poses = {k: odom[k] for k in range(len(odom))}
+
+    def ate(params: GlobalBaParams) -> tuple[float, object]:
+        res = global_bundle_adjustment(calib, bad, poses, edges, pairs, 0, t_ns, params)
+        assert res is not None
+        est = np.array([res.world_from_body[k][:3, 3] for k in poses])
+        return ate_se3_rmse_m(est, true[:, :3, 3]), res
+
+    fixed, res_fixed = ate(GlobalBaParams(pixel_sigma_px=1.0, outlier_sigmas=0.0))
+    own, res_own = ate(GlobalBaParams())
+    assert res_fixed.outlier_limit_px == 3.0  # type: ignore[attr-defined]
+    # 0.2 px per axis: the clean rows' sigma; the limit 3 of them (the tail lifts it a little)
+    assert 0.55 < res_own.outlier_limit_px < 0.9, res_own.summary()  # type: ignore[attr-defined]
+    assert res_own.outliers > 0.8 * n_bad > 10 * res_fixed.outliers  # type: ignore[attr-defined]
+    assert own < 0.8 * fixed, (own, fixed)
+
+
+def test_outlier_limit_is_three_robust_sigmas() -> None:
+    rng = np.random.default_rng(1)
+    e = np.linalg.norm(rng.normal(0, 0.25, (20000, 2)), axis=1)
+    inf = np.full(5, np.inf)  # rows already left out
+    p = GlobalBaParams(outlier_sigmas=3.0)
+    assert _outlier_limit(np.r_[e[:10000], inf], e[10000:], p) == pytest.approx(0.75, rel=0.03)
+    assert _outlier_limit(e, e, GlobalBaParams(outlier_sigmas=0.0)) == 3.0
+    assert _outlier_limit(5 * e, e, GlobalBaParams(outlier_sigmas=30.0)) == 3.0  # at most 3 px

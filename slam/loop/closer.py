@@ -925,6 +925,7 @@ class LoopCloser:
             keyframe_t_ns=self.t_ns_of,
             params=GlobalBaParams(
                 pixel_sigma_px=c.global_ba_pixel_sigma_px,
+                outlier_sigmas=c.global_ba_outlier_sigmas,
                 odometry_sigma_scale=c.global_ba_odometry_sigma_scale,
                 time_budget_s=budget_s,
                 max_keyframes_per_landmark=c.global_ba_max_keyframes_per_landmark,
