@@ -17,9 +17,10 @@ and (where matched) right undistorted pixel, the odometry edges of the pose grap
 ``BetweenFactorPose3`` (they carry the IMU's gravity direction and smoothness; the pose graph's
 sigmas, scaled by ``odometry_sigma_scale``, behind a Huber kernel), and weak priors on every
 keyframe's starting pose as the gauge.
-Levenberg-Marquardt, then observations reprojecting worse than ``outlier_sigmas`` robust sigmas
-of the round's errors (at most ``outlier_px``) are dropped and it runs again. Written with GTSAM's factors because no Python library does stereo-rig BA with
-relative-pose priors; the data handling is numpy.
+Levenberg-Marquardt, then observations reprojecting worse than ``outlier_sigmas`` robust
+sigmas of the round's errors (at most ``outlier_px``) are dropped and it runs again. Written
+with GTSAM's factors because no Python library does stereo-rig BA with relative-pose priors;
+the data handling is numpy.
 """
 
 from __future__ import annotations
