@@ -1121,14 +1121,19 @@ def bridge_corrections(
     bad[1:] |= seg[1:] != seg[:-1]  # no motion across a segment boundary
     motion = np.zeros((n, 3))
     motion[1:] = out[1:, :3, 3] - out[:-1, :3, 3]
+    # vectorised (this runs at every output flush, in the main thread): for each corrupted
+    # motion, the nearest clean one before it and after it
+    index = np.arange(n)
+    last_clean = np.maximum.accumulate(np.where(bad, -1, index))
+    next_clean = np.minimum.accumulate(np.where(bad, n, index)[::-1])[::-1]
+    i = np.flatnonzero(bad[1:-1]) + 1
+    before, after = last_clean[i - 1], next_clean[i + 1]
+    ok = (before >= 1) & (before >= i - max_gap) & (after < n) & (after <= i + max_gap)
+    i, before, after = i[ok], before[ok], after[ok]
+    ok = (seg[i] == seg[i - 1]) & (seg[before] == seg[i]) & (seg[after] == seg[i])
+    i, before, after = i[ok], before[ok], after[ok]
     step = np.zeros((n, 3))
-    for i in (np.flatnonzero(bad[1:]) + 1).tolist():
-        if seg[i] != seg[i - 1]:
-            continue
-        before = [j for j in range(i - 1, max(0, i - 1 - max_gap), -1) if not bad[j]][:1]
-        after = [j for j in range(i + 1, min(n, i + 1 + max_gap)) if not bad[j]][:1]
-        if before and after and seg[before[0]] == seg[i] == seg[after[0]]:
-            step[i] = 0.5 * (motion[before[0]] + motion[after[0]]) - motion[i]
+    step[i] = 0.5 * (motion[before] + motion[after]) - motion[i]
     out[:, :3, 3] += np.cumsum(step, axis=0)
     return out
 
