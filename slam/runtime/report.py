@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 from datasets.sequence import Sequence
 from slam.config import SlamConfig, config_to_yaml
 from slam.core.latency import latency_summary
+from slam.core.messages import ImuBatch
 from slam.core.trajectory import Trajectory
 from slam.cputime import machine_cpu_since, machine_cpu_ticks
 from slam.frontend.tracker import FrontendStats
@@ -73,11 +74,17 @@ def _smoothed(p: Pipeline) -> Callable[[int], bool]:
     return lambda kid: backend is None or kid in backend.keyframe_poses
 
 
-def _trajectories(p: Pipeline) -> tuple[Trajectory, Trajectory, Trajectory | None]:
+def _trajectories(
+    p: Pipeline, imu: ImuBatch | None = None, gravity_m_s2: float = 9.81
+) -> tuple[Trajectory, Trajectory, Trajectory | None]:
+    """Odometry, keyframe and loop-closed trajectories as of now (``imu``: the run's IMU, at
+    its end, for the loop-closed frames between keyframes)."""
     traj, kfs = p.recorder.snapshot()
     kfs = keyframe_trajectory(kfs, p.backend, p.recorder)
     closed = (
-        None if p.loop is None else loop_closed_trajectory(traj, p.loop, _smoothed(p), p.recorder)
+        None
+        if p.loop is None
+        else loop_closed_trajectory(traj, p.loop, _smoothed(p), p.recorder, imu, gravity_m_s2)
     )
     return traj, kfs, closed
 
@@ -205,6 +212,14 @@ class Run:
             return 0
         return backend.time_offset_ns()
 
+    def _imu_for_the_end(self) -> tuple[ImuBatch | None, float]:
+        """The sequence's IMU (and gravity) when the run used it, else (None, 9.81)."""
+        calib = self.seq.calibration.imu
+        if not self.cfg.use_imu or calib is None or self.seq.num_imu == 0:
+            return None, 9.81
+        imu = self.seq.imu()
+        return ImuBatch(imu.t_ns, imu.gyro_rad_s, imu.accel_m_s2), calib.gravity_m_s2
+
     def flush(self) -> None:
         """The outputs for what has been processed so far (every few seconds of a run)."""
         if self.out_dir is not None:
@@ -227,7 +242,7 @@ class Run:
             if progress and not interrupted:
                 print("loop closure: global adjustment ...", flush=True)
             times.parts_s["loop"] = _end_stage(p.loop, control, times.tracking_end)
-        traj, kfs, closed = _trajectories(p)
+        traj, kfs, closed = _trajectories(p, *self._imu_for_the_end())
         if p.mapper is not None:
             t0 = time.perf_counter()
             final = None
