@@ -134,6 +134,8 @@ class BackendStage(ProcessStage):
         self.latest = latest
         self.update_ms: list[float] = []
         self.keyframe_poses: dict[int, np.ndarray] = {}
+        # (t_ns, gyro bias rad/s, accel bias m/s^2) of every initialised estimate, in order
+        self.biases: list[tuple[int, np.ndarray, np.ndarray]] = []
         self.final_stats: dict[str, Any] = {}
         self._pending: list[ImuBatch] = []
         self._pending_samples = 0
@@ -148,9 +150,24 @@ class BackendStage(ProcessStage):
             if est is not None and est.initialized:
                 for kid, pose in est.keyframe_poses.items():
                     self.keyframe_poses[kid] = pose
+                self.biases.append((est.t_ns, est.bias_gyro_rad_s, est.bias_accel_m_s2))
         if item.estimate is not None:
             self.latest.set(item.estimate)
         self.emit(item)
+
+    def biases_at(self, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The gyro (rad/s) and accelerometer (m/s^2) biases of the first initialised estimate
+        at or after each time (the last one after the last), (N, 3) each; zeros without any."""
+        with self._lock:
+            history = list(self.biases)
+        t_ns = np.asarray(t_ns, dtype=np.int64)
+        if not history:
+            return np.zeros((len(t_ns), 3)), np.zeros((len(t_ns), 3))
+        times = np.array([h[0] for h in history], dtype=np.int64)
+        pick = np.minimum(np.searchsorted(times, t_ns, side="left"), len(history) - 1)
+        gyro = np.array([h[1] for h in history], dtype=float).reshape(-1, 3)
+        accel = np.array([h[2] for h in history], dtype=float).reshape(-1, 3)
+        return gyro[pick], accel[pick]
 
     def on_final(self, payload: Any) -> None:
         if isinstance(payload, BackendFinal):

@@ -34,6 +34,8 @@ def imu_between_keyframes(
     frame_segments: np.ndarray,
     imu: ImuBatch,
     gravity_m_s2: float,
+    bias_gyro_rad_s: np.ndarray | None = None,
+    bias_accel_m_s2: np.ndarray | None = None,
 ) -> np.ndarray:
     """``frame_poses`` (N, 4, 4, world_from_body) with every frame strictly between two
     consecutive keyframes (``keyframe_rows``: their rows, increasing) of one map segment, at
@@ -44,13 +46,18 @@ def imu_between_keyframes(
     interval. The frames' own poses (tracking, with the loop corrections interpolated between
     keyframes) are noisier than the adjusted keyframes in fast motion: on room-aggressive
     between keyframes 2.0 mm ATE, at keyframes 1.15; from the IMU 1.24 (BENCHMARKS.md).
-    Intervals the IMU does not cover keep the given poses."""
+    Intervals the IMU does not cover keep the given poses. ``bias_*``: (K, 3), the IMU biases
+    over the interval that starts at each keyframe (None: zero; the accelerometer's matters
+    where keyframes are 0.5 s apart: ``b T^2 / 8`` at the middle)."""
     out = np.array(frame_poses, dtype=float, copy=True)
     t_imu = np.asarray(imu.t_ns, dtype=np.int64)
     if len(t_imu) < 2 or len(keyframe_rows) < 2:
         return out
     rows = np.asarray(keyframe_rows, dtype=np.int64)
-    for a, b in zip(rows[:-1].tolist(), rows[1:].tolist(), strict=True):
+    zero = np.zeros((len(rows), 3))
+    bg = zero if bias_gyro_rad_s is None else np.asarray(bias_gyro_rad_s, dtype=float)
+    ba = zero if bias_accel_m_s2 is None else np.asarray(bias_accel_m_s2, dtype=float)
+    for k, (a, b) in enumerate(zip(rows[:-1].tolist(), rows[1:].tolist(), strict=True)):
         ta, tb = int(frame_t_ns[a]), int(frame_t_ns[b])
         if b - a < 2 or tb - ta > IMU_BRIDGE_MAX_INTERVAL_NS:
             continue
@@ -61,9 +68,9 @@ def imu_between_keyframes(
         samples = [
             ImuSample(int(t_imu[i]), imu.gyro_rad_s[i], imu.accel_m_s2[i]) for i in range(lo, hi)
         ]
-        zero = np.zeros(3)
+        still = np.zeros(3)
         start = out[a]
-        end = propagate_pose(samples, ta, tb, start, zero, zero, zero, gravity_m_s2)
+        end = propagate_pose(samples, ta, tb, start, still, bg[k], ba[k], gravity_m_s2)
         if end is None:
             continue
         span_s = (tb - ta) * 1e-9
@@ -71,7 +78,7 @@ def imu_between_keyframes(
         spin = so3_log(end[0][:3, :3].T @ out[b][:3, :3]).reshape(3)
         for i in range(a + 1, b):
             ti = int(frame_t_ns[i])
-            mid = propagate_pose(samples, ta, ti, start, zero, zero, zero, gravity_m_s2)
+            mid = propagate_pose(samples, ta, ti, start, still, bg[k], ba[k], gravity_m_s2)
             if mid is None:
                 break
             alpha = (ti - ta) / (tb - ta)
@@ -113,6 +120,7 @@ def loop_closed_trajectory(
     recorder: Recorder,
     imu: ImuBatch | None = None,
     gravity_m_s2: float = 9.81,
+    biases_at: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> Trajectory | None:
     """The loop-closed trajectory (every frame through its keyframes' corrections), or None
     before any keyframe has a correction. With ``imu`` (the end of the run), the frames
@@ -163,10 +171,9 @@ def loop_closed_trajectory(
     )
     if imu is not None:
         anchors = [k for k in kids if smoothed(k) and int(t_ns_of[k]) in frame_at]
-        rows = sorted(frame_at[int(t_ns_of[k])] for k in anchors)
-        poses = imu_between_keyframes(
-            traj.t_ns, poses, np.array(rows, dtype=np.int64), segments, imu, gravity_m_s2
-        )
+        rows = np.array(sorted(frame_at[int(t_ns_of[k])] for k in anchors), dtype=np.int64)
+        bg, ba = (None, None) if biases_at is None else biases_at(traj.t_ns[rows])
+        poses = imu_between_keyframes(traj.t_ns, poses, rows, segments, imu, gravity_m_s2, bg, ba)
     return Trajectory.from_matrices(traj.t_ns, poses)
 
 

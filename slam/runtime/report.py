@@ -78,13 +78,16 @@ def _trajectories(
     p: Pipeline, imu: ImuBatch | None = None, gravity_m_s2: float = 9.81
 ) -> tuple[Trajectory, Trajectory, Trajectory | None]:
     """Odometry, keyframe and loop-closed trajectories as of now (``imu``: the run's IMU, at
-    its end, for the loop-closed frames between keyframes)."""
+    its end, for the loop-closed frames between keyframes, with the back end's biases)."""
     traj, kfs = p.recorder.snapshot()
     kfs = keyframe_trajectory(kfs, p.backend, p.recorder)
+    biases = None if p.backend is None else p.backend.biases_at
     closed = (
         None
         if p.loop is None
-        else loop_closed_trajectory(traj, p.loop, _smoothed(p), p.recorder, imu, gravity_m_s2)
+        else loop_closed_trajectory(
+            traj, p.loop, _smoothed(p), p.recorder, imu, gravity_m_s2, biases
+        )
     )
     return traj, kfs, closed
 
