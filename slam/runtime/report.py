@@ -218,7 +218,7 @@ class Run:
     def _imu_for_the_end(self) -> tuple[ImuBatch | None, float]:
         """The sequence's IMU (and gravity) when the run used it, else (None, 9.81)."""
         calib = self.seq.calibration.imu
-        if not self.cfg.use_imu or calib is None or self.seq.num_imu == 0:
+        if self.p.backend is None or calib is None:  # a back end exactly when the IMU is used
             return None, 9.81
         imu = self.seq.imu()
         return ImuBatch(imu.t_ns, imu.gyro_rad_s, imu.accel_m_s2), calib.gravity_m_s2
