@@ -95,25 +95,34 @@ def run_one(
     preset: str | None,
     extra_args: list[str],
     speed: str = "max",
+    tree: Path | None = None,
 ) -> dict[str, Any]:
-    """`slam run` in its own process; returns its stats.json (raises on failure)."""
+    """`slam run` in its own process; returns its stats.json (raises on failure).
+
+    ``tree``: run that source tree's code (a checkout or an exported commit, with this
+    interpreter's packages) instead of the installed one: ``tools.bench_ab``."""
     cmd = [
         sys.executable,
         "-m",
         "tools.cli",
         "run",
-        str(seq_path),
+        str(seq_path.resolve()),
         "--out",
-        str(out_dir),
+        str(out_dir.resolve()),
         "--speed",
         speed,
         "--no-progress",
         *extra_args,
     ]
     if preset:
-        cmd += ["--config", preset]
+        cmd += ["--config", str(Path(preset).resolve()) if Path(preset).is_file() else preset]
+    env = None
+    if tree is not None:
+        env = {**os.environ, "PYTHONPATH": str(tree.resolve())}
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True)
+    proc = subprocess.run(
+        cmd, capture_output=True, text=True, cwd=None if tree is None else tree, env=env
+    )
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
