@@ -166,9 +166,9 @@ class FrontendConfig:
     """New keyframe when the median feature displacement since the last one exceeds this."""
     blur_pose_prior_min_px: float = bounded(2.0, ge=0)
     """A frame whose motion blur, predicted from the gyro and the frame's exposure
-    (``slam.motion_blur``: the median streak of its tracks), is above this many pixels takes,
-    instead of its PnP pose, that pose fused with the IMU's prediction from the back end's
-    latest estimate (information-weighted, ``FrontEnd._blurred_pose``). 0: off; sharper
+    (``slam.frontend.motion_blur``: the median streak of its tracks), is above this many
+    pixels takes, instead of its PnP pose, that pose fused with the IMU's prediction from the
+    back end's latest estimate (information-weighted, ``FrontEnd._blurred_pose``). 0: off; sharper
     frames, and frames of unknown exposure (no blur predicted), keep their PnP pose. On
     room-aggressive with ``--camera realistic`` (blur up to 10 px) half the frames are fused:
     sequential live ATE 9.01 -> 7.81 mm; the suite's other sequences never reach 2 px
