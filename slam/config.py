@@ -164,6 +164,23 @@ class FrontendConfig:
     """New keyframe at least this often, seconds."""
     keyframe_min_parallax_px: float = bounded(25.0, gt=0)
     """New keyframe when the median feature displacement since the last one exceeds this."""
+    blur_pose_prior_min_px: float = bounded(2.0, ge=0)
+    """A frame whose motion blur, predicted from the gyro and the frame's exposure
+    (``slam.frontend.motion_blur``: the median streak of its tracks), is above this many
+    pixels takes, instead of its PnP pose, that pose fused with the IMU's prediction from the
+    back end's latest estimate (information-weighted, ``FrontEnd._blurred_pose``). 0: off; sharper
+    frames, and frames of unknown exposure (no blur predicted), keep their PnP pose. On
+    room-aggressive with ``--camera realistic`` (blur up to 10 px) half the frames are fused:
+    sequential live ATE 9.01 -> 7.81 mm; the suite's other sequences never reach 2 px
+    (BENCHMARKS.md, blur17 and blur17b)."""
+    blur_pose_pixel_sigma_px: float = bounded(1.0, gt=0)
+    """The PnP's pixel sigma in that fusion before the blur ..."""
+    blur_pose_sigma_fraction: float = bounded(0.5, ge=0, le=10)
+    """... grown with the blur as ``hypot(sigma, this * blur)``, px."""
+    blur_pose_prior_sigma_m: float = bounded(0.003, gt=0)
+    """The IMU prediction's position sigma in that fusion, metres ..."""
+    blur_pose_prior_sigma_rad: float = bounded(0.002, gt=0)
+    """... and its rotation sigma, radians."""
     # bounds: 8-bit images: 255 would call every frame black
     black_frame_max_mean: float = bounded(8.0, ge=0, lt=255)
     """A frame darker than this mean intensity is black (tracking cannot work)."""

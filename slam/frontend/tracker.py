@@ -31,6 +31,8 @@ from slam.core.geometry import (
     make_transform,
     nearest_rigid,
     rotation_angle_rad,
+    so3_exp,
+    so3_log,
     transform_points,
 )
 from slam.core.messages import Estimate, FrontendCorrection, Keyframe, StereoFrame, TrackingResult
@@ -45,6 +47,7 @@ from slam.frontend.features import (
     track_klt,
 )
 from slam.frontend.landmark_map import LandmarkMap, MapMatches, SearchParams
+from slam.frontend.motion_blur import angular_rate_rad_s, blur_length_px
 from slam.frontend.stereo import StereoMatcher
 from slam.imu_buffer import ImuBuffer, integrate_gyro, propagate_pose
 
@@ -61,6 +64,9 @@ class FrontendStats:
     relocalisations: int = 0
     imu_bridged: int = 0
     keyframes: int = 0
+    blur_pose_fused: int = 0
+    """Frames whose PnP pose was fused with the IMU's prediction for their predicted motion
+    blur (``blur_pose_prior_min_px``)."""
     estimate_corrections: int = 0
     klt_predicted: int = 0
     """Tracks started at their landmark's projection from the predicted pose
@@ -167,6 +173,7 @@ class FrontEnd:
         self._prior_cache: tuple[Estimate, int, np.ndarray, np.ndarray] | None = None
         self._keyframe_due: tuple[StereoFrame, np.ndarray] | None = None
         self._keyframe_made: Keyframe | None = None
+        self.blur_px = 0.0  # the current frame's predicted motion blur, px (motion_blur.py)
         self._cpu_start_s = 0.0  # thread CPU time and run-queue wait when track() started
         self._runqueue_start_ns: int | None = None
         self.gravity_m_s2 = calib.imu.gravity_m_s2 if calib.imu else 9.81
@@ -365,6 +372,7 @@ class FrontEnd:
         self._runqueue_start_ns = runqueue_wait_ns()
         self.stats.frames += 1
         self._apply_estimate()
+        self.blur_px = self._predicted_blur(frame) if self.cfg.blur_pose_prior_min_px > 0 else 0.0
         image = frame.left
         mean_a, std_a = cv2.meanStdDev(image)
         mean, std = float(mean_a[0, 0]), float(std_a[0, 0])
@@ -484,6 +492,8 @@ class FrontEnd:
         if not ok_pnp or n_in < self.cfg.min_pnp_inliers:
             return self._lose(frame, t_start, f"PnP found {n_in} inliers")
         pose = self._refined_pose(obj[inl], img[inl], rvec, tvec)
+        if 0 < self.cfg.blur_pose_prior_min_px < self.blur_px:
+            pose = self._blurred_pose(pose, obj[inl], img[inl], frame.t_ns)
         self._count_landmarks(self.ids[idx[inl]])
         # drop PnP outliers from the tracks
         keep = np.ones(len(self.ids), dtype=bool)
@@ -589,6 +599,65 @@ class FrontEnd:
         )
         inl = np.zeros(0, np.int64) if inliers is None else inliers.ravel()
         return bool(ok), inl, rvec, tvec
+
+    def _blurred_pose(
+        self, world_from_body: np.ndarray, obj: np.ndarray, img: np.ndarray, t_ns: int
+    ) -> np.ndarray:
+        """A blurred frame's PnP pose fused with the IMU's prediction (``blur_pose_prior_min_px``):
+        the information-weighted mean of the two in the PnP pose's tangent space, a body-frame
+        rotation ``phi`` and translation ``rho`` (``world_from_body @ [exp(phi) | rho]``), so the
+        result does not depend on where the world's origin is. The PnP's information is
+        ``J^T J / sigma^2`` over its inliers (world points ``obj``, undistorted pixels ``img``),
+        ``sigma`` the pixel sigma grown by the blur (``blur_pose_sigma_fraction``); the
+        prediction's is diagonal from its rotation and position sigmas."""
+        cfg = self.cfg
+        predicted = self._imu_prior(t_ns)
+        if predicted is None:
+            return world_from_body
+        self.stats.blur_pose_fused += 1
+        body_from_world = invert_transform(world_from_body)
+        p_body = transform_points(body_from_world, obj)
+        p_cam = transform_points(self.cam0_from_body, p_body)
+        x, y, z = p_cam.T
+        d_px_d_cam = np.zeros((len(z), 2, 3))  # pinhole: the pixels are undistorted
+        d_px_d_cam[:, 0, 0] = self.cam0.fx / z
+        d_px_d_cam[:, 0, 2] = -self.cam0.fx * x / z**2
+        d_px_d_cam[:, 1, 1] = self.cam0.fy / z
+        d_px_d_cam[:, 1, 2] = -self.cam0.fy * y / z**2
+        # the point in the perturbed body: exp(-phi) (p - rho) ~ p + [p]x phi - rho
+        skew_p = np.zeros((len(z), 3, 3))
+        skew_p[:, 0, 1], skew_p[:, 1, 0] = -p_body[:, 2], p_body[:, 2]
+        skew_p[:, 0, 2], skew_p[:, 2, 0] = p_body[:, 1], -p_body[:, 1]
+        skew_p[:, 1, 2], skew_p[:, 2, 1] = -p_body[:, 0], p_body[:, 0]
+        cam_from_body_rot = self.cam0_from_body[:3, :3]
+        d_cam_d_xi = np.concatenate(
+            [cam_from_body_rot @ skew_p, np.broadcast_to(-cam_from_body_rot, skew_p.shape)],
+            axis=2,
+        )
+        jac = (d_px_d_cam @ d_cam_d_xi).reshape(-1, 6)
+        sigma_px = np.hypot(
+            cfg.blur_pose_pixel_sigma_px, cfg.blur_pose_sigma_fraction * self.blur_px
+        )
+        info_pnp = jac.T @ jac / sigma_px**2
+        body_from_predicted = body_from_world @ predicted
+        xi_predicted = np.r_[so3_log(body_from_predicted[:3, :3]), body_from_predicted[:3, 3]]
+        info_predicted = np.diag(
+            [cfg.blur_pose_prior_sigma_rad**-2] * 3 + [cfg.blur_pose_prior_sigma_m**-2] * 3
+        )
+        xi = np.linalg.solve(info_pnp + info_predicted, info_predicted @ xi_predicted)
+        return world_from_body @ make_transform(so3_exp(xi[:3]), xi[3:])
+
+    def _predicted_blur(self, frame: StereoFrame) -> float:
+        """The frame's motion blur from the gyro and its exposure (``motion_blur``): the
+        median streak of the tracks (at their last pixels), px; 0 without exposure or IMU."""
+        if frame.exposure_ns <= 0 or self.imu is None:
+            return 0.0
+        rate = angular_rate_rad_s(self.imu, frame.t_ns, frame.exposure_ns, self.bias_gyro)
+        if rate is None:
+            return 0.0
+        return blur_length_px(
+            rate, frame.exposure_ns * 1e-9, self.cam0_from_body[:3, :3], self.cam0, self.px
+        )
 
     def _refined_pose(
         self, obj: np.ndarray, img: np.ndarray, rvec: np.ndarray, tvec: np.ndarray

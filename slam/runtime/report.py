@@ -140,6 +140,7 @@ class Run:
             "tracking_losses": fe.tracking_losses,
             "map_segments": fe.segments,
             "keyframes": fe.keyframes,
+            "blur_pose_fused": fe.blur_pose_fused,
             "sequence_duration_s": state.sequence_s,
             "real_time_factor": real_time_factor(state.sequence_s, tracking_s),
             "tracking_wall_s": tracking_s,
