@@ -104,6 +104,9 @@ class BackendConfig:
     accelerations that fix the scale need."""
     mono_init_span_keyframes: int = bounded(6, ge=4, le_field="mono_init_keyframes")
     """Monocular start: the fewest keyframes ``mono_init_span_s`` tries the alignment with."""
+    mono_init_hand_free_bias: bool = True
+    """Monocular start decided by the free fit (``mono_init_retry_accel_bias_sigma``): False
+    hands the smoother a zero accelerometer bias (the fit's scale, gravity, velocities kept)."""
 
     mono_scale_check_window_s: float = bounded(0.0, ge=0)
     """Monocular, after the start: every ``mono_scale_check_every_s`` the smoother's keyframe
@@ -111,6 +114,9 @@ class BackendConfig:
     alignment on metric poses: scale 1 expected); 0: no check."""
     mono_scale_check_every_s: float = bounded(1.0, gt=0)
     """How often the scale check runs (keyframe times)."""
+    mono_scale_check_with_bias: bool = False
+    """The scale check aligns the IMU less the smoother's newest accelerometer bias (else the
+    raw IMU, its bias held near 0 by the start's prior)."""
     mono_scale_check_max_std: float = bounded(0.03, gt=0)
     """A check counts only when its scale's standard deviation is under this fraction."""
     mono_scale_check_tolerance: float = bounded(0.1, gt=0, lt=1)

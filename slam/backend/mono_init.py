@@ -34,6 +34,12 @@ standard deviation (residual variance times ``(A^T A)^-1``) is above ``max_scale
 it, and a scale that the first two thirds of the keyframes alone do not reproduce. Smooth
 motion is the usual failure: on the synthetic figure-8's first 1.5 s even ground-truth poses
 align to a scale 1-7 % off, and a VO within 0.3 mm of the truth to one 13 % off.
+
+On gentle motion with a real IMU the bias matters and its prior hides it: held at 0, the
+fit's scale moves by the bias's share of the acceleration and its std grows (V1_01: 3-6 % for
+19 s) or, worse, stays small (a simulated take-off: accepted 5 % off). ``align_mono``'s retry
+also solves with the bias nearly free, whose std is the honest one, and lets that fit decide
+where the two scales disagree.
 """
 
 from __future__ import annotations
