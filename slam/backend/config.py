@@ -104,9 +104,6 @@ class BackendConfig:
     accelerations that fix the scale need."""
     mono_init_span_keyframes: int = bounded(6, ge=4, le_field="mono_init_keyframes")
     """Monocular start: the fewest keyframes ``mono_init_span_s`` tries the alignment with."""
-    mono_init_hand_free_bias: bool = True
-    """Monocular start decided by the free fit (``mono_init_retry_accel_bias_sigma``): False
-    hands the smoother a zero accelerometer bias (the fit's scale, gravity, velocities kept)."""
 
     mono_scale_check_window_s: float = bounded(0.0, ge=0)
     """Monocular, after the start: every ``mono_scale_check_every_s`` the smoother's keyframe

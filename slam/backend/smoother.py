@@ -484,11 +484,7 @@ class VioBackend:
         self.stats.init_state = "initialised"
         pose_w = self._world_from_vo @ scale_body_pose(poses_vo[-1], scale, body_from_cam0)
         vel_w = self._world_from_vo[:3, :3] @ res.velocities_vo_m_s[-1]
-        bias_accel = res.bias_accel_m_s2
-        if res.accel_bias_sigma_m_s2 != cfg.mono_init_accel_bias_sigma:
-            if not cfg.mono_init_hand_free_bias:
-                bias_accel = np.zeros(3)
-        bias = make_bias(res.bias_gyro_rad_s, bias_accel)
+        bias = make_bias(res.bias_gyro_rad_s, res.bias_accel_m_s2)
         return self._finish_init(kf, pose_w, vel_w, bias, "mono")
 
     def _check_mono_scale(self, kf: Keyframe) -> Estimate | None:
