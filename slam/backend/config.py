@@ -90,6 +90,20 @@ class BackendConfig:
     the acceleration that fixes the scale: held at 0, a 0.02 m/s^2 bias moved V1_01's first
     scales 2-3 %. 10 (nearly free) starts V1_01 3 s after the motion instead of 19 s, but the
     suite's four sequences came out worse with it (BENCHMARKS.md, mono18b): not the preset's."""
+    mono_init_retry_accel_bias_sigma: float = bounded(0.0, ge=0, unit="m/s^2")
+    """Monocular start: 0 = off. Else every alignment is also solved with this accelerometer-bias
+    prior (nearly free: 10): the held one (``mono_init_accel_bias_sigma``) is kept where it
+    passes and the free scale agrees with it (within two of the free fit's standard deviations),
+    else the free one starts the smoother if it passes the same checks (its bias, scale,
+    gravity, velocities). V1_01's real IMU: the held fits' std 3-6 % for 19 s, the free ones
+    2.0 % 2.7 s after the motion began (``slam.backend.mono_init.align_mono``)."""
+    mono_init_span_s: float = bounded(0.0, ge=0)
+    """Monocular start: 0 = off. Else the alignment is also tried with fewer than
+    ``mono_init_keyframes`` (at least ``mono_init_span_keyframes``) once they span this long:
+    on slow motion keyframes come every 0.25-0.5 s, and time, not their number, is what the
+    accelerations that fix the scale need."""
+    mono_init_span_keyframes: int = bounded(6, ge=4, le_field="mono_init_keyframes")
+    """Monocular start: the fewest keyframes ``mono_init_span_s`` tries the alignment with."""
 
     mono_scale_check_window_s: float = bounded(0.0, ge=0)
     """Monocular, after the start: every ``mono_scale_check_every_s`` the smoother's keyframe
@@ -97,6 +111,9 @@ class BackendConfig:
     alignment on metric poses: scale 1 expected); 0: no check."""
     mono_scale_check_every_s: float = bounded(1.0, gt=0)
     """How often the scale check runs (keyframe times)."""
+    mono_scale_check_with_bias: bool = False
+    """The scale check aligns the IMU less the smoother's newest accelerometer bias (else the
+    raw IMU, its bias held near 0 by the start's prior)."""
     mono_scale_check_max_std: float = bounded(0.03, gt=0)
     """A check counts only when its scale's standard deviation is under this fraction."""
     mono_scale_check_tolerance: float = bounded(0.1, gt=0, lt=1)

@@ -34,10 +34,17 @@ standard deviation (residual variance times ``(A^T A)^-1``) is above ``max_scale
 it, and a scale that the first two thirds of the keyframes alone do not reproduce. Smooth
 motion is the usual failure: on the synthetic figure-8's first 1.5 s even ground-truth poses
 align to a scale 1-7 % off, and a VO within 0.3 mm of the truth to one 13 % off.
+
+On gentle motion with a real IMU the bias matters and its prior hides it: held at 0, the
+fit's scale moves by the bias's share of the acceleration and its std grows (V1_01: 3-6 % for
+19 s) or, worse, stays small (a simulated take-off: accepted 5 % off). ``align_mono``'s retry
+also solves with the bias nearly free, whose std is the honest one, and lets that fit decide
+where the two scales disagree.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -64,13 +71,16 @@ class MonoAlignment:
     bias_gyro_rad_s: np.ndarray
     bias_accel_m_s2: np.ndarray
     """(3,) held near 0 by a prior (motion over a second or two hardly separates it from
-    gravity and the scale); the smoother refines it."""
+    gravity and the scale; on gentle motion it must be let go: ``accel_bias_sigma_m_s2``);
+    the smoother refines it."""
     gravity_norm_free_m_s2: float
     """|g| of the unconstrained linear solution (a health check)."""
     scale_subset: float
     """The scale from the first two thirds of the keyframes alone (a consistency check)."""
     scale_std: float
     """The scale's standard deviation from the fit's residuals (its excitation check)."""
+    accel_bias_sigma_m_s2: float
+    """The accelerometer-bias prior of this solution (the retry's when that was accepted)."""
 
 
 def _preintegrated(
@@ -266,9 +276,16 @@ def align_mono(
     max_scale_disagreement: float,
     accel_bias_sigma_m_s2: float = 0.1,
     max_scale_std: float = 0.02,
+    retry_accel_bias_sigma_m_s2: float = 0.0,
 ) -> MonoAlignment | None:
     """Align K >= 4 up-to-scale keyframe poses with the IMU (module docstring). None when the
-    IMU does not cover every interval; else a :class:`MonoAlignment`, accepted or not."""
+    IMU does not cover every interval; else a :class:`MonoAlignment`, accepted or not.
+
+    ``retry_accel_bias_sigma_m_s2`` > 0: the same keyframes are also aligned with this (looser)
+    accelerometer-bias prior, whose scale's std is the honest one when the bias matters. The
+    held solution is kept when it passed and the free one's scale is within two of its standard
+    deviations; else the free one when it passes the checks (its bias, scale, gravity and
+    velocities); else the alignment is rejected."""
     k_count = len(t_kf_ns)
     if k_count < 4:
         return None
@@ -287,7 +304,34 @@ def align_mono(
     centres = world_from_body_vo[:, :3, 3] + rot @ lever_m
     bias_gyro, _ = estimate_gyro_bias(params, pieces, rot)
     deltas = _preintegrated(params, pieces, bias_gyro)
-    g_norm = imu.gravity_m_s2
+    fit = _fit(deltas, rot, centres, lever_m, imu.gravity_m_s2, accel_bias_sigma_m_s2)
+    res = _checked(fit, bias_gyro, imu.gravity_m_s2, max_gravity_error_m_s2, max_scale_disagreement,
+                   max_scale_std, accel_bias_sigma_m_s2)  # fmt: skip
+    if retry_accel_bias_sigma_m_s2 <= 0:
+        return res
+    fit = _fit(deltas, rot, centres, lever_m, imu.gravity_m_s2, retry_accel_bias_sigma_m_s2)
+    free = _checked(fit, bias_gyro, imu.gravity_m_s2, max_gravity_error_m_s2,
+                    max_scale_disagreement, max_scale_std, retry_accel_bias_sigma_m_s2)  # fmt: skip
+    if res.accepted and abs(res.scale - free.scale) <= 2.0 * free.scale_std:
+        return res  # the bias does not matter here: the held solution, as without the retry
+    if free.accepted:
+        return free
+    if res.accepted:  # the held scale is not the free one's, which is too uncertain yet
+        reason = f"scale {res.scale:.3f} with the bias held, {free.scale:.3f} free"
+        return dataclasses.replace(res, accepted=False, reason=reason)
+    return res
+
+
+def _fit(
+    deltas: list[tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+    rot: np.ndarray,
+    centres: np.ndarray,
+    lever_m: np.ndarray,
+    g_norm: float,
+    accel_bias_sigma_m_s2: float,
+) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, float, float, float]:
+    """The alignment of :func:`align_mono` with one accelerometer-bias prior: (scale, gravity,
+    velocities, ba, the scale's std, |g| of the free solution, the first two thirds' scale)."""
     _, g_free, _, _, _ = _solve(deltas, rot, centres, lever_m, g_norm, None, accel_bias_sigma_m_s2)
     g_free_norm = float(np.linalg.norm(g_free))
 
@@ -304,6 +348,20 @@ def align_mono(
     scale, gravity, vel, bias_accel, scale_std = refined(deltas)
     sub = max(3, (2 * len(deltas)) // 3)
     scale_sub = refined(deltas[:sub])[0] if sub < len(deltas) else scale
+    return scale, gravity, vel, bias_accel, scale_std, g_free_norm, scale_sub
+
+
+def _checked(
+    fit: tuple[float, np.ndarray, np.ndarray, np.ndarray, float, float, float],
+    bias_gyro: np.ndarray,
+    g_norm: float,
+    max_gravity_error_m_s2: float,
+    max_scale_disagreement: float,
+    max_scale_std: float,
+    accel_bias_sigma_m_s2: float,
+) -> MonoAlignment:
+    """A :func:`_fit` judged by the module docstring's checks."""
+    scale, gravity, vel, bias_accel, scale_std, g_free_norm, scale_sub = fit
     reason = ""
     if not np.isfinite(g_free_norm) or abs(g_free_norm - g_norm) > max_gravity_error_m_s2:
         reason = f"|g| {g_free_norm:.2f} m/s^2 from the free solution"
@@ -324,6 +382,7 @@ def align_mono(
         gravity_norm_free_m_s2=g_free_norm,
         scale_subset=scale_sub,
         scale_std=scale_std,
+        accel_bias_sigma_m_s2=accel_bias_sigma_m_s2,
     )
 
 

@@ -421,7 +421,12 @@ class VioBackend:
         self.imu.trim(kfs[0].t_ns - 1_000_000_000)
         self.stats.init_state = "initialising"
         span_s = (kfs[-1].t_ns - kfs[0].t_ns) * 1e-9
-        if len(kfs) < cfg.mono_init_keyframes or span_s < cfg.mono_init_min_span_s:
+        enough = len(kfs) >= cfg.mono_init_keyframes or (
+            cfg.mono_init_span_s > 0
+            and len(kfs) >= cfg.mono_init_span_keyframes
+            and span_s >= cfg.mono_init_span_s
+        )
+        if not enough or span_s < cfg.mono_init_min_span_s:
             return self._uninitialised_estimate(kf, pose_vo)
         t, g, a = self.imu.arrays()
         body_from_cam0 = self._body_from_cam[0]
@@ -449,6 +454,7 @@ class VioBackend:
             cfg.mono_init_max_scale_disagreement,
             accel_bias_sigma_m_s2=cfg.mono_init_accel_bias_sigma,
             max_scale_std=cfg.mono_init_max_scale_std,
+            retry_accel_bias_sigma_m_s2=cfg.mono_init_retry_accel_bias_sigma,
         )
         if res is None:
             return self._uninitialised_estimate(kf, pose_vo)
@@ -462,6 +468,7 @@ class VioBackend:
                     "scale_first_keyframes": round(res.scale_subset, 5),
                     "scale_std": round(res.scale_std, 5),
                     "gravity_norm_free_m_s2": round(res.gravity_norm_free_m_s2, 4),
+                    "accel_bias_sigma_m_s2": res.accel_bias_sigma_m_s2,
                     "accepted": res.accepted,
                     "reason": res.reason,
                 }
@@ -501,6 +508,8 @@ class VioBackend:
         self._last_scale_check_ns = kf.t_ns
         poses = np.array([self._kf_history[int(t)] for t in times])
         t, g, a = self.imu.arrays()
+        if cfg.mono_scale_check_with_bias:
+            a = a - vals.atConstantBias(B(self._states[-1].k)).accelerometer()
         res = check_scale(
             times,
             poses,
