@@ -304,7 +304,11 @@ PRESETS: dict[str, dict[str, Any]] = {
         # (with gravity's, room-figure8's scale ran away: Sim(3) 0.82 -> 1.024), and the
         # smoother's scale checked against the IMU every second; a 2 s lag (room-figure8's
         # Sim(3) scale 1.024 -> 1.006; BENCHMARKS.md); the accelerometer's calibrated density x3
-        # (at x1 the hall's window hit "Indeterminate linear system": 4 back-end resets -> 0)
+        # (at x1 the hall's window hit "Indeterminate linear system": 4 back-end resets -> 0);
+        # the start's alignment retried with the accelerometer bias free where the held one
+        # fails, and the scale check less the smoother's bias (V1_01's gentle take-off: the
+        # start 18.9 -> 3.3 s after the motion, live 73.2 -> 65.8 mm, loop-closed 28.1 -> 30.0;
+        # the suite byte-identical: BENCHMARKS.md, mono18d)
         "backend": {
             "lag_s": 2.0,
             "map_landmarks": False,
@@ -312,6 +316,8 @@ PRESETS: dict[str, dict[str, Any]] = {
             "imu_accel_scale_error_of_deviation": True,
             "imu_accel_density_factor": 3.0,
             "mono_scale_check_window_s": 5.0,
+            "mono_init_retry_accel_bias_sigma": 10.0,
+            "mono_scale_check_with_bias": True,
         },
         # the monocular front end's KLT has no predicted start: its backward check as measured
         # (on the base level only, the initialisation came 0.15 s later in test_mono_pipeline)
