@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import io
 import json
-import statistics
 import subprocess
 import tarfile
 from pathlib import Path
@@ -30,7 +29,7 @@ from typing import Any
 from slam.core.atomic import write_atomic
 from slam.core.errors import SlamError
 from tools.batch.measure import ate_se3
-from tools.benchmark import STANDARD_SUITE, default_cache_dir, ensure_sequence, run_one
+from tools.benchmark import STANDARD_SUITE, default_cache_dir, ensure_sequence, median, run_one
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -101,11 +100,6 @@ def run_record(stats: dict[str, Any], seq_path: Path, run_dir: Path) -> dict[str
     }
 
 
-def median_of(records: list[dict[str, Any]], key: str) -> float | None:
-    values = [r[key] for r in records if r.get(key) is not None]
-    return float(statistics.median(values)) if values else None
-
-
 def markdown(records: list[dict[str, Any]], versions: dict[str, str]) -> str:
     """Per sequence and metric: A's runs, B's runs, the medians and B / A."""
     lines = [
@@ -121,7 +115,7 @@ def markdown(records: list[dict[str, Any]], versions: dict[str, str]) -> str:
                 v: " / ".join("-" if r.get(key) is None else form.format(r[key]) for r in rows[v])
                 for v in "ab"
             }
-            med = {v: median_of(rows[v], key) for v in "ab"}
+            med = {v: median([r.get(key) for r in rows[v]]) for v in "ab"}
             cells = ["-" if med[v] is None else form.format(med[v]) for v in "ab"]
             a_med, b_med = med["a"], med["b"]
             ratio = "-" if not a_med or b_med is None else f"{b_med / a_med:.2f}"

@@ -197,7 +197,9 @@ def bench_spec(
     )
 
 
-def _median(values: list[Any]) -> Any:
+def median(values: list[Any]) -> Any:
+    """The median of the numbers among ``values`` (None and other non-numbers left out), an
+    int when they all are; None without any."""
     numbers = [v for v in values if isinstance(v, (int, float)) and not isinstance(v, bool)]
     if not numbers:
         return None
@@ -220,12 +222,12 @@ def bench_rows(records: list[dict[str, Any]], base_config: str) -> list[dict[str
         row: dict[str, Any] = {"sequence": seq, "repeats": len(base)}
         for key in keys:
             if key != "sequence":
-                row[key] = _median([m.get(key) for m in base])
+                row[key] = median([m.get(key) for m in base])
         if base and "eval_error" in keys:
             row["eval_error"] = base[0].get("eval_error")
         off = runs.get(LOOP_OFF)
         if off:
-            row["ate_loop_off_m"] = _median([m.get("ate_se3_m") for m in off])
+            row["ate_loop_off_m"] = median([m.get("ate_se3_m") for m in off])
             closed, off_m = row.get("ate_loop_closed_m"), row["ate_loop_off_m"]
             if closed is not None and off_m:
                 row["loop_ratio"] = closed / off_m
