@@ -304,14 +304,16 @@ def align_mono(
     centres = world_from_body_vo[:, :3, 3] + rot @ lever_m
     bias_gyro, _ = estimate_gyro_bias(params, pieces, rot)
     deltas = _preintegrated(params, pieces, bias_gyro)
-    fit = _fit(deltas, rot, centres, lever_m, imu.gravity_m_s2, accel_bias_sigma_m_s2)
-    res = _checked(fit, bias_gyro, imu.gravity_m_s2, max_gravity_error_m_s2, max_scale_disagreement,
-                   max_scale_std, accel_bias_sigma_m_s2)  # fmt: skip
+
+    def aligned(bias_sigma_m_s2: float) -> MonoAlignment:
+        fit = _fit(deltas, rot, centres, lever_m, imu.gravity_m_s2, bias_sigma_m_s2)
+        return _checked(fit, bias_gyro, imu.gravity_m_s2, max_gravity_error_m_s2,
+                        max_scale_disagreement, max_scale_std, bias_sigma_m_s2)  # fmt: skip
+
+    res = aligned(accel_bias_sigma_m_s2)
     if retry_accel_bias_sigma_m_s2 <= 0:
         return res
-    fit = _fit(deltas, rot, centres, lever_m, imu.gravity_m_s2, retry_accel_bias_sigma_m_s2)
-    free = _checked(fit, bias_gyro, imu.gravity_m_s2, max_gravity_error_m_s2,
-                    max_scale_disagreement, max_scale_std, retry_accel_bias_sigma_m_s2)  # fmt: skip
+    free = aligned(retry_accel_bias_sigma_m_s2)
     if res.accepted and abs(res.scale - free.scale) <= 2.0 * free.scale_std:
         return res  # the bias does not matter here: the held solution, as without the retry
     if free.accepted:
