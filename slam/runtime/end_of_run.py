@@ -14,9 +14,9 @@ from collections.abc import Callable
 import numpy as np
 
 from slam.core.geometry import invert_transform, poses_to_matrices, so3_exp_batch, so3_log
-from slam.core.messages import ImuBatch, ImuSample
+from slam.core.messages import ImuBatch
 from slam.core.trajectory import Trajectory
-from slam.imu_buffer import propagate_pose
+from slam.imu_buffer import ImuBuffer, propagate_pose
 from slam.loop.closer import bridge_corrections, loop_closed_poses
 from slam.runtime.backend import BackendStage
 from slam.runtime.loop import LoopClosureStage
@@ -50,8 +50,9 @@ def imu_between_keyframes(
     over the interval that starts at each keyframe (None: zero; the accelerometer's matters
     where keyframes are 0.5 s apart: ``b T^2 / 8`` at the middle)."""
     out = np.array(frame_poses, dtype=float, copy=True)
-    t_imu = np.asarray(imu.t_ns, dtype=np.int64)
-    if len(t_imu) < 2 or len(keyframe_rows) < 2:
+    buffer = ImuBuffer(keep_ns=None)  # the whole run's IMU; window(): the samples over [ta, tb]
+    buffer.extend_batch(imu)
+    if len(buffer) < 2 or len(keyframe_rows) < 2:
         return out
     rows = np.asarray(keyframe_rows, dtype=np.int64)
     zero = np.zeros((len(rows), 3))
@@ -63,11 +64,7 @@ def imu_between_keyframes(
             continue
         if len(set(np.asarray(frame_segments[a : b + 1]).tolist())) > 1:
             continue
-        lo = max(int(np.searchsorted(t_imu, ta, side="right")) - 1, 0)
-        hi = min(int(np.searchsorted(t_imu, tb, side="left")) + 1, len(t_imu))
-        samples = [
-            ImuSample(int(t_imu[i]), imu.gyro_rad_s[i], imu.accel_m_s2[i]) for i in range(lo, hi)
-        ]
+        samples = buffer.window(ta, tb)
         still = np.zeros(3)
         start = out[a]
         end = propagate_pose(samples, ta, tb, start, still, bg[k], ba[k], gravity_m_s2)
