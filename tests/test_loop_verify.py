@@ -169,8 +169,8 @@ def test_two_way_reprojection_jacobian_matches_finite_differences():
     translation) against central differences of the same residuals."""
     from scipy.optimize._numdiff import approx_derivative
 
-    from slam.core.geometry import so3_exp, so3_right_jacobian
-    from slam.loop.verify import _project, _skew_batch, _two_way_jacobian
+    from slam.core.geometry import skew_batch, so3_exp, so3_right_jacobian
+    from slam.loop.verify import _project, _two_way_jacobian
 
     rng = np.random.default_rng(3)
     k = np.array([[450.0, 0, 370], [0, 455.0, 240], [0, 0, 1]])
@@ -186,8 +186,8 @@ def test_two_way_reprojection_jacobian_matches_finite_differences():
     x = np.array([0.3, -0.2, 0.5, 0.1, 0.05, -0.2])
     rot, jr, t = so3_exp(x[:3]), so3_right_jacobian(x[:3]), x[3:]
     a_in_q = (pc - t) @ rot
-    d_a = np.concatenate([_skew_batch(a_in_q) @ jr, np.broadcast_to(-rot.T, (25, 3, 3))], 2)
-    d_b = np.concatenate([-(rot @ _skew_batch(pq)) @ jr, np.broadcast_to(np.eye(3), (25, 3, 3))], 2)
+    d_a = np.concatenate([skew_batch(a_in_q) @ jr, np.broadcast_to(-rot.T, (25, 3, 3))], 2)
+    d_b = np.concatenate([-(rot @ skew_batch(pq)) @ jr, np.broadcast_to(np.eye(3), (25, 3, 3))], 2)
     analytic = _two_way_jacobian(k, a_in_q, d_a, pq @ rot.T + t, d_b)
     numeric = approx_derivative(residuals, x, method="3-point")
     assert np.abs(analytic - numeric).max() < 1e-5 * np.abs(numeric).max()

@@ -99,6 +99,14 @@ def skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
+def skew_batch(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices (N, 3, 3) of vectors (N, 3)."""
+    out = np.zeros((len(v), 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    return out
+
+
 def so3_exp(omega: np.ndarray) -> np.ndarray:
     """Rotation matrix for one rotation vector (rad), by Rodrigues' formula (:func:`so3_exp_batch`)."""
     return so3_exp_batch(omega)[0]

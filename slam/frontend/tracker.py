@@ -31,6 +31,7 @@ from slam.core.geometry import (
     make_transform,
     nearest_rigid,
     rotation_angle_rad,
+    skew_batch,
     so3_exp,
     so3_log,
     transform_points,
@@ -625,10 +626,7 @@ class FrontEnd:
         d_px_d_cam[:, 1, 1] = self.cam0.fy / z
         d_px_d_cam[:, 1, 2] = -self.cam0.fy * y / z**2
         # the point in the perturbed body: exp(-phi) (p - rho) ~ p + [p]x phi - rho
-        skew_p = np.zeros((len(z), 3, 3))
-        skew_p[:, 0, 1], skew_p[:, 1, 0] = -p_body[:, 2], p_body[:, 2]
-        skew_p[:, 0, 2], skew_p[:, 2, 0] = p_body[:, 1], -p_body[:, 1]
-        skew_p[:, 1, 2], skew_p[:, 2, 1] = -p_body[:, 0], p_body[:, 0]
+        skew_p = skew_batch(p_body)
         cam_from_body_rot = self.cam0_from_body[:3, :3]
         d_cam_d_xi = np.concatenate(
             [cam_from_body_rot @ skew_p, np.broadcast_to(-cam_from_body_rot, skew_p.shape)],

@@ -18,7 +18,13 @@ import cv2
 import numpy as np
 
 from slam.core.calibration import CameraIntrinsics
-from slam.core.geometry import invert_transform, make_transform, so3_exp, so3_right_jacobian
+from slam.core.geometry import (
+    invert_transform,
+    make_transform,
+    skew_batch,
+    so3_exp,
+    so3_right_jacobian,
+)
 
 
 @dataclass(frozen=True)
@@ -169,14 +175,6 @@ def _project_jacobian(points: np.ndarray, k: np.ndarray) -> np.ndarray:
     return out
 
 
-def _skew_batch(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices (N, 3, 3) of vectors (N, 3)."""
-    out = np.zeros((len(v), 3, 3))
-    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
-    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
-    return out
-
-
 def _two_way_jacobian(
     k: np.ndarray,
     a_in_q: np.ndarray,
@@ -235,10 +233,10 @@ def refine_symmetric(
         t = x[3:]
         pc_in_q = (pc - t) @ rot
         d_a = np.empty((len(pc), 3, 6))
-        d_a[:, :, :3] = _skew_batch(pc_in_q) @ jr
+        d_a[:, :, :3] = skew_batch(pc_in_q) @ jr
         d_a[:, :, 3:] = -rot.T
         d_b = np.empty((len(pq), 3, 6))
-        d_b[:, :, :3] = -(rot @ _skew_batch(pq)) @ jr
+        d_b[:, :, :3] = -(rot @ skew_batch(pq)) @ jr
         d_b[:, :, 3:] = np.eye(3)
         return _two_way_jacobian(k, pc_in_q, d_a, pq @ rot.T + t, d_b)
 
@@ -539,10 +537,10 @@ def refine_on_patches(
         a_in_q = (a - t) @ rot
         d_a = np.empty((len(a), 3, 6))
         d_a[:, :, :3] = -(pose0[:3, :3].T @ rot).T  # -exp(w)^T
-        d_a[:, :, 3:] = _skew_batch(a_in_q) @ jr
+        d_a[:, :, 3:] = skew_batch(a_in_q) @ jr
         d_b = np.empty((len(b), 3, 6))
         d_b[:, :, :3] = pose0[:3, :3]
-        d_b[:, :, 3:] = -(rot @ _skew_batch(b)) @ jr
+        d_b[:, :, 3:] = -(rot @ skew_batch(b)) @ jr
         return _two_way_jacobian(k, a_in_q, d_a, b @ rot.T + t, d_b)
 
     a_keep = np.ones(len(a_pts), bool)
