@@ -26,6 +26,7 @@ from datasets.synth.trajectories import ProfileMotion, SinusoidChannel, TimeWarp
 from slam.core.calibration import ImuCalibration
 from slam.core.errors import InputError
 from slam.core.geometry import rotation_angle_rad
+from slam.core.messages import mid_exposure_ns
 from slam.core.trajectory import Trajectory
 
 
@@ -261,6 +262,28 @@ def test_realistic_bundle_is_deterministic_by_seed() -> None:
     assert not np.array_equal(fa.left, fc.left)
     np.testing.assert_array_equal(a.exposure.exposure_s, b.exposure.exposure_s)
     assert not np.array_equal(a.exposure.illumination, c.exposure.illumination)
+
+
+def test_ground_truth_holds_each_images_mid_exposure_pose() -> None:
+    """With exposures, the ground truth has the exact pose at every frame's mid-exposure stamp
+    (what the player stamps the frame with) besides the 200 Hz grid, so nearest association
+    pairs each estimate with its own time; without exposures it is the grid alone."""
+    seq = make_synthetic_sequence("aggressive", 2.0, 3, camera=realistic_camera())
+    gt = seq.ground_truth
+    assert gt is not None
+    exposures = seq.exposures_ns()
+    assert exposures is not None
+    mids = mid_exposure_ns(seq.frame_times_ns(), exposures)
+    assert np.all(np.diff(gt.t_ns) > 0)
+    assert np.isin(seq.imu().t_ns, gt.t_ns).all()
+    assert np.isin(mids[mids >= gt.t_ns[0]], gt.t_ns).all()
+    assert (mids % 5_000_000 != 0).sum() > len(mids) // 2  # most are off the grid
+    k = int(np.flatnonzero(gt.t_ns == mids[10])[0])
+    truth = seq.world_from_body_at(int(mids[10]))
+    np.testing.assert_allclose(gt.positions_m[k], truth[:3, 3], atol=1e-12)
+    clean = make_synthetic_sequence("aggressive", 2.0, 3)
+    assert clean.ground_truth is not None
+    np.testing.assert_array_equal(clean.ground_truth.t_ns, clean.imu().t_ns)
 
 
 def test_schedule_without_auto_exposure_keeps_brightness() -> None:
