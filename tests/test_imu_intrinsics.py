@@ -58,32 +58,32 @@ def _states(
 
 
 def test_fit_recovers_injected_scale_and_misalignment() -> None:
-    """20 s of the aggressive profile with 0.3 % scale errors and 1 mrad misalignment (10x
-    the bundle's misalignment here, so it is visible above the noise): both correction
-    matrices equal the inverse of the injected ones within 0.03 % per entry, 5-10x smaller
-    than the errors injected."""
+    """20 s of the aggressive profile with 0.3 % scale errors and 3 mrad misalignment (3x the
+    bundle's, so it stands above the noise), keyframe states 0.05 mrad / 0.1 mm noisy: the
+    gyro's correction matrix equals the inverse of the injected one within 0.04 % per entry,
+    the accelerometer's within 0.1 %, each at least 4x (gyro 10x) smaller than the injected
+    errors, and within 3.5 of the fit's own standard deviations."""
     effects = ImuEffects(scale_error_std=0.003, misalignment_std_rad=0.003)
     states, distortion = _states("aggressive", 20.0, effects, seed=5)
     fit = fit_intrinsics(states, GRAVITY, ImuIntrinsics.identity(), prior_sigma=0.01)
     assert fit is not None
-    for found, injected, std in (
-        (fit.gyro_matrix, distortion.gyro_matrix, fit.gyro_std),
-        (fit.accel_matrix, distortion.accel_matrix, fit.accel_std),
+    for found, injected, std, tol, gain in (
+        (fit.gyro_matrix, distortion.gyro_matrix, fit.gyro_std, 4e-4, 10),
+        (fit.accel_matrix, distortion.accel_matrix, fit.accel_std, 1e-3, 4),
     ):
         truth = np.linalg.inv(injected)
         err = np.abs(found - truth)
-        assert err.max() < 3e-4, (found, truth)
-        assert np.abs(truth - np.eye(3)).max() > 5 * err.max()
-        # the reported uncertainty covers the error (within 4 sigma)
-        assert np.all(err < 4 * std + 2e-5)
+        assert err.max() < tol, (found, truth)
+        assert np.abs(truth - np.eye(3)).max() > gain * err.max()
+        assert np.all(err < 3.5 * std)
 
 
 def test_no_effects_fit_stays_at_identity() -> None:
     states, _ = _states("aggressive", 15.0, ImuEffects(), seed=6)
     fit = fit_intrinsics(states, GRAVITY, ImuIntrinsics.identity(), prior_sigma=0.01)
     assert fit is not None
-    assert np.abs(fit.gyro_matrix - np.eye(3)).max() < 3e-4
-    assert np.abs(fit.accel_matrix - np.eye(3)).max() < 3e-4
+    assert np.abs(fit.gyro_matrix - np.eye(3)).max() < 5e-4
+    assert np.abs(fit.accel_matrix - np.eye(3)).max() < 1e-3
 
 
 def test_scale_only_model_holds_the_off_diagonals() -> None:
@@ -94,9 +94,13 @@ def test_scale_only_model_holds_the_off_diagonals() -> None:
     )
     assert fit is not None
     off = ~np.eye(3, dtype=bool)
-    assert np.abs(fit.gyro_matrix[off]).max() < 1e-9
-    truth = 1.0 / np.diag(distortion.accel_matrix)
-    assert np.abs(np.diag(fit.accel_matrix) - truth).max() < 3e-4
+    assert np.abs(fit.gyro_matrix[off]).max() < 1e-6
+    for found, injected, tol in (
+        (fit.gyro_matrix, distortion.gyro_matrix, 3e-4),
+        (fit.accel_matrix, distortion.accel_matrix, 1e-3),
+    ):
+        truth = 1.0 / np.diag(injected)
+        assert np.abs(np.diag(found) - truth).max() < tol
 
 
 def test_gate_waits_for_excitation() -> None:
@@ -115,10 +119,10 @@ def test_gate_waits_for_excitation() -> None:
     for s in fast:
         est.add_state(s)
     applied = est.update()
-    assert applied is not None and est.converged
-    assert np.abs(applied.gyro_matrix - np.linalg.inv(distortion.gyro_matrix)).max() < 3e-4
+    assert applied is not None and est.gyro_applied_t_ns == fast[-1].t_ns
+    assert np.abs(applied.gyro_matrix - np.linalg.inv(distortion.gyro_matrix)).max() < 4e-4
     summary = est.summary()
-    assert summary["status"] == "applied" and summary["fits"] == 1
+    assert summary["status"].endswith("applied") and summary["fits"] == 1
 
 
 def test_buffer_applies_intrinsics_to_every_reading() -> None:
@@ -130,7 +134,7 @@ def test_buffer_applies_intrinsics_to_every_reading() -> None:
     ]
     buf.extend(samples)
     plain = buf.window(0, 10**9)
-    assert plain[3] is samples[3]
+    np.testing.assert_array_equal(plain[3].gyro_rad_s, samples[3].gyro_rad_s)
     g = np.eye(3) + np.diag([0.003, -0.002, 0.001])
     a = np.eye(3) + 0.001 * np.array([[0, 1, 0], [0, 0, 2], [1, 0, 0]])
     buf.set_intrinsics(ImuIntrinsics(g, a))
@@ -142,5 +146,27 @@ def test_buffer_applies_intrinsics_to_every_reading() -> None:
     raw_t, raw_g, _ = buf.raw_arrays()
     np.testing.assert_array_equal(raw_g[5], samples[5].gyro_rad_s)
     buf.set_intrinsics(ImuIntrinsics.identity())
-    assert buf.window(0, 10**9)[3] is samples[3]
+    assert buf.window(0, 10**9)[3] is plain[3]  # the stored samples themselves again
     np.testing.assert_array_equal(buf.arrays()[1][5], samples[5].gyro_rad_s)
+
+
+def test_small_corrections_are_not_applied() -> None:
+    """``imu_intrinsics_min_correction``: a calibrated IMU (no effects) fits within 0.05 % of
+    the identity and is left as read; 0.3 % scale errors (the largest drawn here 0.7 %) are
+    applied."""
+    cfg = BackendConfig(imu_intrinsics_online=True, imu_intrinsics_min_correction=0.002)
+    clean, _ = _states("aggressive", 12.0, ImuEffects(), seed=10)
+    est = OnlineImuIntrinsics(cfg, IMU)
+    for s in clean:
+        est.add_state(s)
+    assert est.update() is None and est.applied.is_identity
+    assert est.status.startswith("calibrated")
+    assert len(est.fits) == 1
+    effects = ImuEffects(scale_error_std=0.003)
+    off, distortion = _states("aggressive", 12.0, effects, seed=10)
+    assert np.abs(np.diag(distortion.gyro_matrix) - 1).max() > 0.002
+    est = OnlineImuIntrinsics(cfg, IMU)
+    for s in off:
+        est.add_state(s)
+    applied = est.update()
+    assert applied is not None and not applied.is_identity

@@ -68,6 +68,9 @@ class BackendConfig:
     """A sensor's matrix is applied at all only once one of its scale factors is this far
     from 1 (a fraction): below it, the fit's own error (the smoother's relative rotations are
     ~0.05 % off the truth on clean room-aggressive) would cost more than it corrects."""
+    imu_intrinsics_accel: bool = True
+    """Apply the accelerometer's fitted matrix too (False: the gyro's only; the
+    accelerometer's fit is still reported)."""
     imu_intrinsics_misalignment: bool = True
     """Fit the whole matrix (scale and misalignment); False: the diagonal (scales) only."""
     imu_intrinsics_scale_error: float = bounded(0.005, ge=0, le=0.2)

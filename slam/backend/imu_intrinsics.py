@@ -135,7 +135,7 @@ class OnlineImuIntrinsics:
         self.fits.append(fit)
         limit = cfg.imu_intrinsics_apply_std
         gyro_ok = float(np.diag(fit.gyro_std).max()) < limit
-        accel_ok = float(np.diag(fit.accel_std).max()) < limit
+        accel_ok = float(np.diag(fit.accel_std).max()) < limit and cfg.imu_intrinsics_accel
         if not (gyro_ok or accel_ok):
             self.status = "too little excitation"
             return None
