@@ -106,7 +106,13 @@ def test_scale_only_model_holds_the_off_diagonals() -> None:
 def test_gate_waits_for_excitation() -> None:
     """A gentle figure-8 for 6 s does not determine the scales to 0.05 %: nothing applied
     (the identity stays); the aggressive profile does, and the matrices are applied."""
-    cfg = BackendConfig(imu_intrinsics_online=True, imu_intrinsics_min_span_s=5.0)
+    cfg = BackendConfig(
+        imu_intrinsics_online=True,
+        imu_intrinsics_min_span_s=5.0,
+        imu_intrinsics_apply_std=0.0005,
+        imu_intrinsics_min_correction=0.0,
+        imu_intrinsics_accel=True,
+    )
     effects = ImuEffects(scale_error_std=0.003, misalignment_std_rad=0.001)
     gentle, _ = _states("figure8", 6.0, effects, seed=8)
     est = OnlineImuIntrinsics(cfg, IMU)
@@ -154,7 +160,9 @@ def test_small_corrections_are_not_applied() -> None:
     """``imu_intrinsics_min_correction``: a calibrated IMU (no effects) fits within 0.05 % of
     the identity and is left as read; 0.3 % scale errors (the largest drawn here 0.7 %) are
     applied."""
-    cfg = BackendConfig(imu_intrinsics_online=True, imu_intrinsics_min_correction=0.002)
+    cfg = BackendConfig(
+        imu_intrinsics_online=True, imu_intrinsics_min_correction=0.002, imu_intrinsics_accel=True
+    )
     clean, _ = _states("aggressive", 12.0, ImuEffects(), seed=10)
     est = OnlineImuIntrinsics(cfg, IMU)
     for s in clean:

@@ -8,22 +8,26 @@ state: this module estimates ``C ~= T^-1`` per sensor and the IMU store applies 
 reading (``slam.imu_buffer.ImuBuffer.set_intrinsics``), before the biases are taken off.
 
 The fit, over the keyframe states of the last ``imu_intrinsics_window_s`` once the smoother
-has let them go (final, vision-anchored estimates), against the raw IMU between them:
+has let them go (final, vision-anchored estimates), against the raw IMU between them, joined
+into intervals of at least ``imu_intrinsics_interval_s``:
 
 1. gyro (Gauss-Newton, a few iterations): the preintegrated rotation of ``C_g @ raw - b_g``
    over each interval against the states' relative rotation ``R_a^T R_b``; unknowns ``C_g``
    (9) and a bias ``b_g`` constant over the window.
-2. accelerometer (linear, given the gyro's rotations): per interval a -> b of length T,
-   ``R_a^T (v_b - v_a - g T) = sum_k R_ak (C_a a_k - b_a) dt_k`` and
-   ``R_a^T (p_b - p_a - v_a T - g T^2 / 2) = sum_k R_ak (C_a a_k - b_a) w_k``
-   (``w_k`` the double integral's weight of piece k); unknowns ``C_a`` (9), ``b_a`` (3) and
-   every state's velocity (the states' positions and rotations are the anchors).
+2. accelerometer (linear, given the gyro's rotations, taken at each piece's middle): per
+   interval a -> b of length T, ``R_a^T (v_b - v_a - g T) = sum_k R_ak (C_a a_k - b_a) dt_k``
+   and ``R_a^T (p_b - p_a - v_a T - g T^2 / 2) = sum_k R_ak (C_a a_k - b_a) w_k`` (``w_k``
+   the double integral's weight of piece k); unknowns ``C_a`` (9), every state's velocity and
+   a bias per interval that follows the calibration's random walk (the states' positions and
+   rotations are the anchors).
 
 Both hold ``C - I`` to 0 with ``imu_intrinsics_prior_sigma`` (a weakly excited direction
-stays at the identity; its bias takes it) and weigh each equation kind by its own residual
+stays at the identity; its bias takes it) and weigh each equation kind by its residual
 RMS. A sensor's matrix is applied once the standard deviation of each of its three scale
-factors is below ``imu_intrinsics_apply_std`` (excitation gate), and re-fitted every
-``imu_intrinsics_every_s``.
+factors is below ``imu_intrinsics_apply_std`` (excitation gate) and, the first time, one of
+them is at least ``imu_intrinsics_min_correction`` from 1 (a calibrated IMU stays as read);
+it is re-fitted every ``imu_intrinsics_every_s``. Tested against injected truth in
+``tests/test_imu_intrinsics.py``; measured in BENCHMARKS.md (imu17).
 """
 
 from __future__ import annotations
@@ -72,12 +76,6 @@ class IntrinsicsFit:
     rms_rotation_rad: float
     rms_velocity_m_s: float
     rms_position_m: float
-
-
-def _kron_rows(left: np.ndarray, vec: np.ndarray, weight: np.ndarray) -> np.ndarray:
-    """sum_k weight_k * left_k @ kron(I3, vec_k^T): the (3, 9) derivative of
-    ``sum_k weight_k * left_k @ (E @ vec_k)`` by the row-major entries of E."""
-    return np.einsum("kri,kc,k->ric", left, vec, weight).reshape(3, 9)
 
 
 class OnlineImuIntrinsics:
@@ -376,7 +374,7 @@ def fit_intrinsics(
     joined = np.flatnonzero(iv.b[:-1] == iv.a[1:])
     walk_w = 1.0 / (max(accel_random_walk, 1e-9) ** 2 * 0.5 * (span[joined] + span[joined + 1]))
     sig_v, sig_p = 1e-2, 1e-3
-    x = np.zeros(n)
+    x: np.ndarray = np.zeros(n)
     h_a = np.eye(n)
     rows = np.repeat(cols[:, :, None], 18, axis=2)
     cols_t = np.repeat(cols[:, None, :], 18, axis=1)
