@@ -47,10 +47,11 @@ class BackendConfig:
     imu_intrinsics_online: bool = False
     """Estimate the gyro's and accelerometer's correction matrices (per-axis scale, axis
     misalignment) from the smoother's final keyframe states and apply them to every IMU
-    reading (the back end's and the front end's ``ImuBuffer``). Off: measured on
-    room-aggressive only (realistic: live 6.29 -> 5.55 mm, loop-closed 1.39 -> 1.41; clean
-    byte-identical, nothing applied); the other keys' defaults are that measurement's
-    (BENCHMARKS.md, imu17)."""
+    reading (the back end's and the front end's ``ImuBuffer``). Off: realistic live / loop-closed
+    ATE room-aggressive 6.29 / 1.39 -> 5.55 / 1.41 mm, room-figure8 4.08 / 1.93 -> 3.67 / 1.43,
+    but room-loop 5.90 / 0.51 -> 7.33 / 0.67 (its gyro fit 0.3 % off); clean room-aggressive
+    byte-identical (nothing applied). The other keys' defaults are those runs' (BENCHMARKS.md,
+    imu17)."""
     imu_intrinsics_window_s: float = bounded(20.0, gt=0)
     """Keyframe states of the last this many seconds are fitted."""
     imu_intrinsics_min_span_s: float = bounded(5.0, ge=0)
