@@ -13,6 +13,11 @@ and out-of-order samples and count every problem in ``stats``; what differs is c
 Every read and write holds a lock (the player appends while the front end reads): ``window``
 returns a new list, ``arrays`` cached arrays that are replaced, never modified, when the samples
 change.
+
+The store is also where the IMU's intrinsics are applied (``set_intrinsics``: the back end's
+online estimate, ``slam.backend.imu_intrinsics``): samples are kept as read, and every reading
+(``window``, ``arrays``) is ``matrix @ raw`` per sensor; ``raw_arrays`` gives them as read.
+Without intrinsics (or with the identity) the readings are the stored samples themselves.
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from slam.core.geometry import so3_exp_batch
-from slam.core.messages import ImuBatch, ImuSample
+from slam.core.messages import ImuBatch, ImuIntrinsics, ImuSample
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +86,8 @@ class ImuBuffer:
         self._t: list[int] = []
         self._samples: list[ImuSample] = []
         self._cache: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._raw_cache: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._intrinsics: ImuIntrinsics | None = None  # None: readings as stored
 
     def __len__(self) -> int:
         return len(self._t)
@@ -135,7 +142,7 @@ class ImuBuffer:
             if len(kept):
                 self._t.extend(t[kept].tolist())
                 self._samples.extend(ImuSample(int(t[i]), gyro[i], accel[i]) for i in kept.tolist())
-                self._cache = None
+                self._cache = self._raw_cache = None
                 self.stats.accepted += len(kept)
             self._forget_old()
         return len(kept)
@@ -195,7 +202,7 @@ class ImuBuffer:
             return False
         self._t.append(t_ns)
         self._samples.append(sample)
-        self._cache = None
+        self._cache = self._raw_cache = None
         self.stats.accepted += 1
         return True
 
@@ -205,7 +212,17 @@ class ImuBuffer:
 
     def _drop_first(self, count: int) -> None:
         del self._t[:count], self._samples[:count]
-        self._cache = None
+        self._cache = self._raw_cache = None
+
+    def set_intrinsics(self, intrinsics: ImuIntrinsics | None) -> None:
+        """Read every sample (kept and future) through these correction matrices from now on;
+        None or the identity: the samples as read."""
+        new = None if intrinsics is None or intrinsics.is_identity else intrinsics
+        with self._lock:
+            if new is self._intrinsics:
+                return
+            self._intrinsics = new
+            self._cache = None
 
     # ------------------------------------------------------------------ reading
     def window(self, t0_ns: int, t1_ns: int) -> list[ImuSample]:
@@ -215,19 +232,40 @@ class ImuBuffer:
                 return []
             i0 = max(bisect.bisect_right(self._t, t0_ns) - 1, 0)
             i1 = min(bisect.bisect_left(self._t, t1_ns) + 1, len(self._t))
-            return self._samples[i0:i1]
+            samples = self._samples[i0:i1]
+            intrinsics = self._intrinsics
+        if intrinsics is None or not samples:
+            return samples
+        gyro = np.array([s.gyro_rad_s for s in samples], dtype=float) @ intrinsics.gyro_matrix.T
+        accel = np.array([s.accel_m_s2 for s in samples], dtype=float) @ intrinsics.accel_matrix.T
+        return [ImuSample(s.t_ns, g, a) for s, g, a in zip(samples, gyro, accel, strict=True)]
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(t_ns (N,), gyro (N, 3), accel (N, 3)) of the kept samples (cached until changed)."""
+        """(t_ns (N,), gyro (N, 3), accel (N, 3)) of the kept samples, read through the
+        intrinsics (cached until changed)."""
         with self._lock:
             if self._cache is None:
-                samples = self._samples
-                self._cache = (
-                    np.asarray(self._t, dtype=np.int64),
-                    np.array([s.gyro_rad_s for s in samples], dtype=float).reshape(-1, 3),
-                    np.array([s.accel_m_s2 for s in samples], dtype=float).reshape(-1, 3),
-                )
+                t_ns, gyro, accel = self._raw_locked()
+                m = self._intrinsics
+                if m is not None:
+                    gyro, accel = gyro @ m.gyro_matrix.T, accel @ m.accel_matrix.T
+                self._cache = (t_ns, gyro, accel)
             return self._cache
+
+    def raw_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`arrays` as read, without the intrinsics."""
+        with self._lock:
+            return self._raw_locked()
+
+    def _raw_locked(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if self._raw_cache is None:
+            samples = self._samples
+            self._raw_cache = (
+                np.asarray(self._t, dtype=np.int64),
+                np.array([s.gyro_rad_s for s in samples], dtype=float).reshape(-1, 3),
+                np.array([s.accel_m_s2 for s in samples], dtype=float).reshape(-1, 3),
+            )
+        return self._raw_cache
 
     def arrays_between(self, t0_ns: int, t1_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`arrays` of the samples with t0_ns <= t <= t1_ns (copies)."""

@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from datasets.rigs import euroc_like_calibration
-from datasets.synth.imu_sim import SimulatedImu, simulate_imu
+from datasets.synth.imu_sim import ImuEffects, SimulatedImu, simulate_imu
 from datasets.synth.trajectories import ProfileMotion, SinusoidChannel, TimeWarp
 from slam.core.calibration import Calibration, CameraIntrinsics
 from slam.core.geometry import invert_transform, make_transform, transform_points
@@ -125,11 +125,13 @@ def generate_world(
     vo_step_sigma_rad: float = 0.0005,
     vo_point_sigma_m: float = 0.02,
     still_s: float = 0.0,
+    imu_effects: ImuEffects | None = None,
 ) -> SimWorld:
     """A deterministic world (per seed); message time starts at 1 s (trajectory time 0).
 
     ``start_s`` is where on the analytic path the flight starts (in motion unless ``still_s`` >
-    0, which holds the vehicle still for that long and then ramps smoothly into motion)."""
+    0, which holds the vehicle still for that long and then ramps smoothly into motion).
+    ``imu_effects``: scale errors, misalignment, vibration of the IMU (``imu.distortion``)."""
     rng = np.random.default_rng(seed)
     calib = euroc_like_calibration(distortion=False)  # no images: ideal lenses
     imu_cal = calib.imu
@@ -152,6 +154,7 @@ def generate_world(
         seed=int(rng.integers(2**63)),
         gyro_bias0_rad_s=np.array([-0.0022, 0.0215, 0.077]),  # EuRoC V1_01's ground truth
         accel_bias0_m_s2=np.array([-0.018, 0.066, 0.031]),
+        effects=imu_effects,
     )
 
     landmarks = room_landmarks(rng)

@@ -38,10 +38,12 @@ from slam.backend.config import BackendConfig
 from slam.backend.fixed_lag import FixedLagSmoother
 from slam.backend.imu import (
     backend_imu_buffer,
+    integration_pieces,
     make_bias,
     preintegrate,
     preintegration_params,
 )
+from slam.backend.imu_intrinsics import KeyframeState, OnlineImuIntrinsics
 from slam.backend.init import (
     MovingInitResult,
     is_still,
@@ -88,6 +90,8 @@ class _State:
     keyframe_id: int
     t_ns: int
     world_from_body_vo: np.ndarray | None
+    # the raw IMU pieces from the previous state (the IMU intrinsics' fit; None: not kept)
+    raw_pieces: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
 @dataclass
@@ -212,6 +216,11 @@ class VioBackend:
         self._t_origin_ns: int | None = None
         self._estimate = Estimate.pose_only(0, -1, np.eye(4), initialized=False)
         self.time_offset = OnlineTimeOffset(self.config) if self.config.time_offset_online else None
+        self.intrinsics = (
+            OnlineImuIntrinsics(self.config, calibration.imu)
+            if self.config.imu_intrinsics_online
+            else None
+        )
         self._held: list[Keyframe] = []  # waiting for the time offset
         self._held_s = 0.0
 
@@ -706,10 +715,15 @@ class VioBackend:
             kf.t_ns,
             cfg.imu_gap_max_s,
             self.imu_calibration,
-            (cfg.imu_gyro_scale_error, cfg.imu_accel_scale_error),
+            self._scale_errors(),
             cfg.imu_accel_scale_error_of_deviation,
             cfg.imu_accel_density_factor,
         )
+        raw_pieces = None
+        if self.intrinsics is not None and pim is not None:
+            raw_pieces = integration_pieces(
+                *self.imu.raw_arrays(), prev.t_ns, kf.t_ns, cfg.imu_gap_max_s
+            )
         if pim is not None:
             pred = pim.predict(gtsam.NavState(prev_pose, prev_vel), prev_bias)
             pose_guess, vel_guess = pred.pose(), pred.velocity()
@@ -822,7 +836,9 @@ class VioBackend:
         self._landmarks |= new_landmark_ids
         self.stats.landmarks_inserted += len(new_landmark_ids)
         self.stats.observations_added += sum(1 for x in factor_lids if x >= 0)
-        self._states.append(_State(k, kf.keyframe_id, kf.t_ns, pose_vo))
+        self._states.append(_State(k, kf.keyframe_id, kf.t_ns, pose_vo, raw_pieces))
+        if self.intrinsics is not None:
+            self._fit_intrinsics(vals, values)
         self._states = [s for s in self._states if values.exists(X(s.k))]
         self._landmarks = {lid for lid in self._landmarks if values.exists(L(lid))}
         self._map_alive = {lid for lid in self._map_alive | new_map if values.exists(L(lid))}
@@ -1066,6 +1082,40 @@ class VioBackend:
                 return None
         return p_w
 
+    def _scale_errors(self) -> tuple[float, float]:
+        """The scale / axis error the IMU noise allows for, per sensor (gyro, accel): the
+        configured ones, or ``imu_intrinsics_scale_error`` once that sensor's matrix is applied."""
+        cfg = self.config
+        gyro, accel = cfg.imu_gyro_scale_error, cfg.imu_accel_scale_error
+        est = self.intrinsics
+        if est is not None:
+            if est.gyro_applied_t_ns >= 0:
+                gyro = cfg.imu_intrinsics_scale_error
+            if est.accel_applied_t_ns >= 0:
+                accel = cfg.imu_intrinsics_scale_error
+        return gyro, accel
+
+    def _fit_intrinsics(self, before: gtsam.Values, after: gtsam.Values) -> None:
+        """Hand the states this update marginalised (their last estimate, from ``before``) to
+        the IMU intrinsics' fit; apply what it returns to the back end's IMU readings."""
+        assert self.intrinsics is not None
+        for s in self._states:
+            if after.exists(X(s.k)) or not before.exists(X(s.k)):
+                continue
+            pose = before.atPose3(X(s.k))
+            self.intrinsics.add_state(
+                KeyframeState(
+                    s.t_ns,
+                    pose.rotation().matrix(),
+                    np.asarray(pose.translation(), float),
+                    np.asarray(before.atVector(V(s.k)), float),
+                    s.raw_pieces,
+                )
+            )
+        applied = self.intrinsics.update()
+        if applied is not None:
+            self.imu.set_intrinsics(applied)
+
     def _check_state(
         self,
         values: gtsam.Values,
@@ -1172,6 +1222,9 @@ class VioBackend:
             landmark_ids=lids,
             landmark_positions_world=pts,
             vo_scale=self._vo_scale,
+            imu_intrinsics=None
+            if self.intrinsics is None or self.intrinsics.applied.is_identity
+            else self.intrinsics.applied,
         )
 
 

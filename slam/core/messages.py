@@ -104,6 +104,28 @@ class TimeOffsetState:
 
 
 @dataclass(frozen=True, eq=False)
+class ImuIntrinsics:
+    """Correction matrices of an IMU's raw readings: ``calibrated = gyro_matrix @ raw_gyro``,
+    ``calibrated = accel_matrix @ raw_accel`` (per-axis scale and axis misalignment), applied
+    before the biases are taken off. Estimated online by the back end
+    (``slam.backend.imu_intrinsics``) and applied by every ``slam.imu_buffer.ImuBuffer``
+    reading of the readings (``set_intrinsics``)."""
+
+    gyro_matrix: np.ndarray  # (3, 3), dimensionless
+    accel_matrix: np.ndarray  # (3, 3), dimensionless
+
+    @staticmethod
+    def identity() -> ImuIntrinsics:
+        return ImuIntrinsics(np.eye(3), np.eye(3))
+
+    @property
+    def is_identity(self) -> bool:
+        return bool(np.array_equal(self.gyro_matrix, np.eye(3))) and bool(
+            np.array_equal(self.accel_matrix, np.eye(3))
+        )
+
+
+@dataclass(frozen=True, eq=False)
 class Estimate:
     """An immutable snapshot the back end publishes; the front end reads it without waiting.
 
@@ -128,6 +150,9 @@ class Estimate:
     front end scales its map by it (camera centres and landmarks about the VO origin,
     ``slam.core.geometry.scale_body_pose``) before it adopts the back end's world."""
     time_offset: TimeOffsetState | None = None  # the online camera-IMU offset (None: not run)
+    imu_intrinsics: ImuIntrinsics | None = None
+    """The IMU correction matrices applied in the back end (None: none estimated yet or the
+    estimation is off); the front end applies the same to its readings."""
 
     @staticmethod
     def pose_only(

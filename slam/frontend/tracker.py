@@ -206,6 +206,8 @@ class FrontEnd:
         self.applied_estimate = key
         self.latest_estimate = est
         self.bias_gyro = np.asarray(est.bias_gyro_rad_s, dtype=float)
+        if self.imu is not None and est.imu_intrinsics is not None:
+            self.imu.set_intrinsics(est.imu_intrinsics)  # the back end's biases are for these
         if fe_pose is None or (self.reframed and not self.mapped):
             return
         if not self._rigid_estimate(est, fe_pose):

@@ -27,6 +27,7 @@ from slam.core.messages import (
     BackendOutput,
     Estimate,
     ImuBatch,
+    ImuIntrinsics,
     ImuSample,
     Keyframe,
 )
@@ -101,6 +102,8 @@ class _Estimator(WorkerCore):
             out["mono_scale_checks"] = list(s.mono_scale_checks)
         if self.backend.time_offset is not None:
             out["time_offset"] = self.backend.time_offset.summary()
+        if self.backend.intrinsics is not None:
+            out["imu_intrinsics"] = self.backend.intrinsics.summary()
         imu_stats = getattr(self.backend.imu, "stats", None)
         if imu_stats is not None:
             out["imu"] = {k: v for k, v in vars(imu_stats).items() if isinstance(v, (int, float))}
@@ -211,6 +214,11 @@ class BackendStage(ProcessStage):
     def estimate(self) -> Estimate | None:
         value: Estimate | None = self.latest.get()
         return value
+
+    def imu_intrinsics(self) -> ImuIntrinsics | None:
+        """The IMU correction matrices of the latest estimate (None: none applied)."""
+        est = self.latest.get()
+        return None if est is None else est.imu_intrinsics
 
     def time_offset_ns(self) -> int:
         """The camera-IMU offset to stamp frames with now (0 until the back end knows it)."""

@@ -14,7 +14,7 @@ from collections.abc import Callable
 import numpy as np
 
 from slam.core.geometry import invert_transform, poses_to_matrices, so3_exp_batch, so3_log
-from slam.core.messages import ImuBatch
+from slam.core.messages import ImuBatch, ImuIntrinsics
 from slam.core.trajectory import Trajectory
 from slam.imu_buffer import ImuBuffer, propagate_pose
 from slam.loop.closer import bridge_corrections, loop_closed_poses
@@ -36,6 +36,7 @@ def imu_between_keyframes(
     gravity_m_s2: float,
     bias_gyro_rad_s: np.ndarray | None = None,
     bias_accel_m_s2: np.ndarray | None = None,
+    intrinsics: ImuIntrinsics | None = None,
 ) -> np.ndarray:
     """``frame_poses`` (N, 4, 4, world_from_body) with every frame strictly between two
     consecutive keyframes (``keyframe_rows``: their rows, increasing) of one map segment, at
@@ -48,10 +49,12 @@ def imu_between_keyframes(
     between keyframes 2.0 mm ATE, at keyframes 1.15; from the IMU 1.24 (BENCHMARKS.md).
     Intervals the IMU does not cover keep the given poses. ``bias_*``: (K, 3), the IMU biases
     over the interval that starts at each keyframe (None: zero; the accelerometer's matters
-    where keyframes are 0.5 s apart: ``b T^2 / 8`` at the middle)."""
+    where keyframes are 0.5 s apart: ``b T^2 / 8`` at the middle). ``intrinsics``: the
+    back end's IMU correction matrices (its biases are for readings through them)."""
     out = np.array(frame_poses, dtype=float, copy=True)
     buffer = ImuBuffer(keep_ns=None)  # the whole run's IMU; window(): the samples over [ta, tb]
     buffer.extend_batch(imu)
+    buffer.set_intrinsics(intrinsics)
     if len(buffer) < 2 or len(keyframe_rows) < 2:
         return out
     rows = np.asarray(keyframe_rows, dtype=np.int64)
@@ -118,6 +121,7 @@ def loop_closed_trajectory(
     imu: ImuBatch | None = None,
     gravity_m_s2: float = 9.81,
     biases_at: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
+    intrinsics: ImuIntrinsics | None = None,
 ) -> Trajectory | None:
     """The loop-closed trajectory (every frame through its keyframes' corrections), or None
     before any keyframe has a correction. With ``imu`` (the end of the run), the frames
@@ -170,7 +174,9 @@ def loop_closed_trajectory(
         anchors = [k for k in kids if smoothed(k) and int(t_ns_of[k]) in frame_at]
         rows = np.array(sorted(frame_at[int(t_ns_of[k])] for k in anchors), dtype=np.int64)
         bg, ba = (None, None) if biases_at is None else biases_at(traj.t_ns[rows])
-        poses = imu_between_keyframes(traj.t_ns, poses, rows, segments, imu, gravity_m_s2, bg, ba)
+        poses = imu_between_keyframes(
+            traj.t_ns, poses, rows, segments, imu, gravity_m_s2, bg, ba, intrinsics
+        )
     return Trajectory.from_matrices(traj.t_ns, poses)
 
 

@@ -86,7 +86,14 @@ def _trajectories(
         None
         if p.loop is None
         else loop_closed_trajectory(
-            traj, p.loop, _smoothed(p), p.recorder, imu, gravity_m_s2, biases
+            traj,
+            p.loop,
+            _smoothed(p),
+            p.recorder,
+            imu,
+            gravity_m_s2,
+            biases,
+            None if p.backend is None else p.backend.imu_intrinsics(),
         )
     )
     return traj, kfs, closed
