@@ -105,6 +105,15 @@ class BackendConfig:
     mono_init_span_keyframes: int = bounded(6, ge=4, le_field="mono_init_keyframes")
     """Monocular start: the fewest keyframes ``mono_init_span_s`` tries the alignment with."""
 
+    mono_init_batch: bool = False
+    """Monocular start: after an accepted alignment, one visual-inertial bundle adjustment over
+    its whole window (every keyframe's metric pose, velocity and bias; the landmarks'
+    projections and the IMU factors; ``slam.backend.mono_init.batch_start``, VINS-Mono's first
+    window optimisation), and the smoother starts at the newest keyframe from its solution
+    with its joint marginal (pose, velocity, bias) as the prior, instead of the alignment's
+    newest state under the loose ``prior_*`` sigmas. The front end's map takes the batch's
+    scale."""
+
     mono_scale_check_window_s: float = bounded(0.0, ge=0)
     """Monocular, after the start: every ``mono_scale_check_every_s`` the smoother's keyframe
     estimates of the last this many seconds are aligned with the IMU again (the start's
