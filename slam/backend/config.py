@@ -148,6 +148,18 @@ class BackendConfig:
     mono_init_span_keyframes: int = bounded(6, ge=4, le_field="mono_init_keyframes")
     """Monocular start: the fewest keyframes ``mono_init_span_s`` tries the alignment with."""
 
+    mono_init_batch: bool = False
+    """Monocular start: after an accepted alignment, one visual-inertial bundle adjustment over
+    its whole window (every keyframe's metric pose, velocity and bias; the landmarks'
+    projections and the IMU factors; ``slam.backend.mono_init.batch_start``, VINS-Mono's first
+    window optimisation), and the smoother starts at the newest keyframe from its solution
+    with its joint marginal (pose, velocity, bias) as the prior, instead of the alignment's
+    newest state under the loose ``prior_*`` sigmas. The front end's map takes the batch's
+    scale. Off: one sequential run each (BENCHMARKS.md, mono18e), room-figure8 loop-closed
+    15.07 -> 1.64 mm and V1_01's Sim(3) scale 1.50 % -> 0.99 % off, but room-loop +9 / +10 %
+    (live / loop-closed) and the hall's loop-closed +49 %; with ``mono_init_span_s`` V1_01
+    got worse (live 83 -> 99 mm)."""
+
     mono_scale_check_window_s: float = bounded(0.0, ge=0)
     """Monocular, after the start: every ``mono_scale_check_every_s`` the smoother's keyframe
     estimates of the last this many seconds are aligned with the IMU again (the start's

@@ -40,6 +40,13 @@ fit's scale moves by the bias's share of the acceleration and its std grows (V1_
 19 s) or, worse, stays small (a simulated take-off: accepted 5 % off). ``align_mono``'s retry
 also solves with the bias nearly free, whose std is the honest one, and lets that fit decide
 where the two scales disagree.
+
+After an accepted alignment, :func:`batch_start` (VINS-Mono's first sliding-window
+optimisation over the aligned window) can refine it: one visual-inertial bundle adjustment over
+every keyframe of the window (metric poses, velocities and biases; the landmarks' projections,
+IMU factors between consecutive keyframes) whose newest state, with the joint marginal
+covariance of its pose, velocity and bias, starts the fixed-lag smoother: the window's
+evidence for the scale is carried on instead of a loose prior on the newest state alone.
 """
 
 from __future__ import annotations
@@ -438,3 +445,186 @@ def check_scale(
     wrong = res.accepted and abs(res.scale - 1.0) > tolerance
     velocity = np.asarray(res.velocities_vo_m_s[-1], float)
     return ScaleCheck(res.scale, res.scale_std, res.accepted, wrong, velocity)
+
+
+@dataclass(frozen=True, eq=False)
+class BatchStart:
+    """The result of :func:`batch_start`: the window's states after the visual-inertial bundle
+    adjustment, and a prior that carries them into the fixed-lag smoother."""
+
+    world_from_body: np.ndarray
+    """(K, 4, 4) metric, gravity-aligned world."""
+    velocities_m_s: np.ndarray
+    """(K, 3) world frame."""
+    biases: list[gtsam.imuBias.ConstantBias]
+    prior: gtsam.NonlinearFactor
+    """The newest state's joint marginal (pose, velocity, bias; a ``LinearContainerFactor`` on
+    the caller's keys at the batch's solution): what the whole window says about it, with the
+    correlations (the scale lives in the pose-velocity one)."""
+    covariance: np.ndarray
+    """(15, 15) that marginal's covariance: pose (rotation rad, position m; GTSAM's tangent),
+    velocity m/s, bias (accelerometer m/s^2, gyro rad/s)."""
+    scale_change: float
+    """The camera centres' spread over the window after / before (1: the alignment's scale)."""
+    landmarks: int
+    observations: int
+    error_before: float
+    error_after: float
+
+
+def batch_start(
+    world_from_body: np.ndarray,
+    velocities_m_s: np.ndarray,
+    bias: gtsam.imuBias.ConstantBias,
+    imu_factors: list[gtsam.PreintegratedCombinedMeasurements],
+    observations: list[tuple[np.ndarray, np.ndarray]],
+    points_world: dict[int, np.ndarray],
+    intrinsics_k: np.ndarray,
+    body_from_cam0: np.ndarray,
+    newest_keys: tuple[int, int, int],
+    pixel_sigma_px: float = 1.0,
+    huber_k: float = 1.345,
+    min_keyframes_per_landmark: int = 2,
+    prior_pose_sigmas: tuple[float, float] = (0.01, 0.01),
+    prior_bias_sigmas: tuple[float, float] = (0.1, 0.005),
+    iterations: int = 30,
+) -> BatchStart | None:
+    """One visual-inertial bundle adjustment over the aligned window (K keyframes).
+
+    Starts from the alignment's metric poses ``world_from_body`` (K, 4, 4), velocities (K, 3)
+    and ``bias``; ``imu_factors[i]`` is the preintegration from keyframe i to i + 1 (as the
+    smoother's); ``observations[k]`` = (landmark ids, undistorted cam0 pixels) of keyframe k,
+    ``points_world`` a starting position per landmark (metric world). Landmarks seen by fewer
+    than ``min_keyframes_per_landmark`` keyframes are left out. The gauge: the first pose held
+    by a prior of ``prior_pose_sigmas`` (rad, m; its roll and pitch are also seen by the IMU),
+    the first bias by ``prior_bias_sigmas`` (accelerometer, gyro) about ``bias``. Velocities,
+    later poses and biases (random walk through the combined IMU factors) and the scale are
+    free. ``newest_keys`` = (pose, velocity, bias) keys the returned prior is written on.
+    None when the problem is too small or the solver or its marginals fail."""
+    k_count = len(world_from_body)
+    if k_count < 2 or len(imu_factors) != k_count - 1:
+        return None
+    counts: dict[int, int] = {}
+    for ids, _ in observations:
+        for lid in ids.tolist():
+            counts[lid] = counts.get(lid, 0) + 1
+    used = {
+        lid
+        for lid, c in counts.items()
+        if c >= min_keyframes_per_landmark
+        and lid in points_world
+        and np.all(np.isfinite(points_world[lid]))
+    }
+    if len(used) < 20:
+        return None
+
+    def xk(k: int) -> int:
+        return gtsam.symbol("x", k)
+
+    def vk(k: int) -> int:
+        return gtsam.symbol("v", k)
+
+    def bk(k: int) -> int:
+        return gtsam.symbol("b", k)
+
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    for k in range(k_count):
+        values.insert(xk(k), gtsam.Pose3(np.asarray(world_from_body[k], float)))
+        values.insert(vk(k), np.asarray(velocities_m_s[k], float))
+        values.insert(bk(k), bias)
+    sr, sp = prior_pose_sigmas
+    graph.add(
+        gtsam.PriorFactorPose3(
+            xk(0),
+            gtsam.Pose3(np.asarray(world_from_body[0], float)),
+            gtsam.noiseModel.Diagonal.Sigmas(np.array([sr, sr, sr, sp, sp, sp])),
+        )
+    )
+    sa, sg = prior_bias_sigmas
+    graph.add(
+        gtsam.PriorFactorConstantBias(
+            bk(0), bias, gtsam.noiseModel.Diagonal.Sigmas(np.array([sa, sa, sa, sg, sg, sg]))
+        )
+    )
+    for i, pim in enumerate(imu_factors):
+        graph.add(
+            gtsam.CombinedImuFactor(xk(i), vk(i), xk(i + 1), vk(i + 1), bk(i), bk(i + 1), pim)
+        )
+    cal = gtsam.Cal3_S2(
+        intrinsics_k[0, 0], intrinsics_k[1, 1], 0.0, intrinsics_k[0, 2], intrinsics_k[1, 2]
+    )
+    body_p_cam = gtsam.Pose3(np.asarray(body_from_cam0, float))
+    noise = gtsam.noiseModel.Robust.Create(
+        gtsam.noiseModel.mEstimator.Huber.Create(huber_k),
+        gtsam.noiseModel.Isotropic.Sigma(2, pixel_sigma_px),
+    )
+    for lid in sorted(used):
+        values.insert(gtsam.symbol("l", lid), np.asarray(points_world[lid], float))
+    n_obs = 0
+    for k, (ids, px) in enumerate(observations):
+        for lid, uv in zip(ids.tolist(), np.asarray(px, float), strict=True):
+            if lid in used and np.all(np.isfinite(uv)):
+                graph.add(
+                    gtsam.GenericProjectionFactorCal3_S2(
+                        uv, noise, xk(k), gtsam.symbol("l", lid), cal, body_p_cam
+                    )
+                )
+                n_obs += 1
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(iterations)
+    try:
+        error_before = float(graph.error(values))
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+        last = k_count - 1
+        joint = gtsam.Marginals(graph, result).jointMarginalCovariance(
+            [xk(last), vk(last), bk(last)]
+        )
+        keys = [xk(last), vk(last), bk(last)]
+        cov = np.block([[joint.at(a, b) for b in keys] for a in keys])
+    except RuntimeError:
+        return None
+    poses = np.array([result.atPose3(xk(k)).matrix() for k in range(k_count)])
+    vels = np.array([result.atVector(vk(k)) for k in range(k_count)])
+    if not (np.all(np.isfinite(poses)) and np.all(np.isfinite(vels)) and np.all(np.isfinite(cov))):
+        return None
+    lever = np.asarray(body_from_cam0, float)[:3, 3]
+    c_in = world_from_body[:, :3, 3] + world_from_body[:, :3, :3] @ lever
+    c_out = poses[:, :3, 3] + poses[:, :3, :3] @ lever
+    spread_in = float(np.linalg.norm(c_in - c_in.mean(axis=0), axis=1).sum())
+    spread_out = float(np.linalg.norm(c_out - c_out.mean(axis=0), axis=1).sum())
+    return BatchStart(
+        world_from_body=poses,
+        velocities_m_s=vels,
+        biases=[result.atConstantBias(bk(k)) for k in range(k_count)],
+        prior=_joint_prior(cov, newest_keys, result, (xk(last), vk(last), bk(last))),
+        covariance=cov,
+        scale_change=spread_out / max(spread_in, 1e-12),
+        landmarks=len(used),
+        observations=n_obs,
+        error_before=error_before,
+        error_after=float(graph.error(result)),
+    )
+
+
+def _joint_prior(
+    covariance: np.ndarray,
+    keys: tuple[int, int, int],
+    solution: gtsam.Values,
+    solution_keys: tuple[int, int, int],
+) -> gtsam.NonlinearFactor:
+    """A Gaussian prior on (pose, velocity, bias) ``keys`` with this joint ``covariance``
+    about their values in ``solution`` (at ``solution_keys``): the whitened Jacobian factor
+    ``R d = 0`` (``R^T R`` the information) linearised at the solution."""
+    info = np.linalg.inv(covariance)
+    info = 0.5 * (info + info.T)
+    r = np.linalg.cholesky(info).T  # upper: info = r^T r
+    factor = gtsam.JacobianFactor(
+        keys[0], r[:, 0:6], keys[1], r[:, 6:9], keys[2], r[:, 9:15], np.zeros(15),
+        gtsam.noiseModel.Unit.Create(15),
+    )  # fmt: skip
+    lin = gtsam.Values()
+    lin.insert(keys[0], solution.atPose3(solution_keys[0]))
+    lin.insert(keys[1], solution.atVector(solution_keys[1]))
+    lin.insert(keys[2], solution.atConstantBias(solution_keys[2]))
+    return gtsam.LinearContainerFactor(factor, lin)

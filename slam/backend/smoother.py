@@ -52,7 +52,7 @@ from slam.backend.init import (
     still_init_kalman,
     world_from_vo_gravity,
 )
-from slam.backend.mono_init import align_mono, check_scale, refine_vo_poses
+from slam.backend.mono_init import align_mono, batch_start, check_scale, refine_vo_poses
 from slam.backend.time_offset import OnlineTimeOffset
 from slam.core.calibration import Calibration
 from slam.core.errors import SlamError
@@ -145,6 +145,11 @@ class BackendStats:
     """Monocular: the scale checks after the start (``mono_scale_check_window_s``): time,
     scale, its standard deviation, whether counted, whether the smoother was corrected."""
     mono_scale_corrections: int = 0
+    mono_init_batch_scale_change: float = 0.0
+    """Monocular, ``mono_init_batch``: the start's batch adjustment moved the alignment's scale
+    by this factor (0: no batch ran; 1 +- its failure: the alignment's start was used)."""
+    mono_init_batch_velocity_sigma_m_s: float = 0.0
+    """...and the newest velocity's standard deviation (largest axis) it handed on."""
     keyframes_held_for_time_offset: int = 0
     update_times_s: list[float] = field(default_factory=list)  # wall time per add_keyframe
     update_cpu_s: list[float] = field(default_factory=list)  # this thread's CPU time per call
@@ -488,13 +493,100 @@ class VioBackend:
         scale = res.scale
         first_m = scale_body_pose(poses_vo[0], scale, body_from_cam0)
         self._world_from_vo = world_from_vo_gravity(-res.gravity_vo_m_s2, first_m[:3, 3])
-        self._vo_scale = scale
-        self.stats.vo_scale = scale
-        self.stats.init_state = "initialised"
         pose_w = self._world_from_vo @ scale_body_pose(poses_vo[-1], scale, body_from_cam0)
         vel_w = self._world_from_vo[:3, :3] @ res.velocities_vo_m_s[-1]
         bias = make_bias(res.bias_gyro_rad_s, res.bias_accel_m_s2)
-        return self._finish_init(kf, pose_w, vel_w, bias, "mono")
+        prior = None
+        if cfg.mono_init_batch:
+            batch = self._batch_start(kfs, poses_vo, points, scale, res.velocities_vo_m_s, bias)
+            if batch is not None:
+                scale *= batch.scale_change
+                pose_w = batch.world_from_body[-1]
+                vel_w = batch.velocities_m_s[-1]
+                bias = batch.biases[-1]
+                prior = batch.prior
+                newest = scale_body_pose(poses_vo[-1], scale, body_from_cam0)
+                self._world_from_vo = pose_w @ invert_transform(newest)
+        self._vo_scale = scale
+        self.stats.vo_scale = scale
+        self.stats.init_state = "initialised"
+        return self._finish_init(kf, pose_w, vel_w, bias, "mono", prior)
+
+    def _batch_start(
+        self,
+        kfs: list[Keyframe],
+        poses_vo: np.ndarray,
+        points_vo: dict[int, np.ndarray],
+        scale: float,
+        velocities_vo_m_s: np.ndarray,
+        bias: gtsam.imuBias.ConstantBias,
+    ) -> Any:
+        """``mono_init_batch``: the aligned window's visual-inertial bundle adjustment
+        (:func:`slam.backend.mono_init.batch_start`) from the alignment's metric states; None
+        (the alignment's start is used) when an interval has no IMU or the batch fails."""
+        cfg = self.config
+        b = self._body_from_cam[0]
+        w_from_vo = self._world_from_vo
+        poses_w = np.array([w_from_vo @ scale_body_pose(p, scale, b) for p in poses_vo])
+        vels_w = np.asarray(velocities_vo_m_s, float) @ w_from_vo[:3, :3].T
+        pims = []
+        for k0, k1 in zip(kfs[:-1], kfs[1:], strict=True):
+            pim = preintegrate(
+                self.imu,
+                self._params,
+                bias,
+                k0.t_ns,
+                k1.t_ns,
+                cfg.imu_gap_max_s,
+                self.imu_calibration,
+                (cfg.imu_gyro_scale_error, cfg.imu_accel_scale_error),
+                cfg.imu_accel_scale_error_of_deviation,
+                cfg.imu_accel_density_factor,
+            )
+            if pim is None:
+                return None
+            pims.append(pim)
+        points_w = {
+            lid: w_from_vo[:3, :3] @ (scale * np.asarray(p, float)) + w_from_vo[:3, 3]
+            for lid, p in points_vo.items()
+        }
+        limit = cfg.max_landmarks_per_keyframe
+        obs = [
+            (np.asarray(k.landmark_ids)[:limit], np.asarray(k.pixels_left_undist)[:limit])
+            for k in kfs
+        ]
+        batch = batch_start(
+            poses_w,
+            vels_w,
+            bias,
+            pims,
+            obs,
+            points_w,
+            self._k_mats[0],
+            b,
+            (X(0), V(0), B(0)),
+            cfg.pixel_sigma_px,
+            cfg.huber_k,
+            cfg.min_keyframes_per_landmark,
+            (cfg.prior_pose_sigma_rad, cfg.prior_pose_sigma_m),
+            (cfg.prior_bias_accel_sigma_m_s2, cfg.prior_bias_gyro_sigma_rad_s),
+        )
+        if batch is None:
+            log.warning("monocular start: the window's batch adjustment failed; alignment kept")
+            self.stats.mono_init_batch_scale_change = 1.0
+            return None
+        self.stats.mono_init_batch_scale_change = round(batch.scale_change, 5)
+        sigma_v = float(np.sqrt(np.max(np.diag(batch.covariance)[6:9])))
+        self.stats.mono_init_batch_velocity_sigma_m_s = round(sigma_v, 5)
+        log.info(
+            "monocular start: window batch adjustment over %d keyframes, %d landmarks: scale x%.4f,"
+            " velocity sigma %.4f m/s",
+            len(kfs),
+            batch.landmarks,
+            batch.scale_change,
+            sigma_v,
+        )
+        return batch
 
     def _check_mono_scale(self, kf: Keyframe) -> Estimate | None:
         """Monocular: the start's visual-inertial alignment run again on the smoother's own
@@ -593,6 +685,7 @@ class VioBackend:
         vel_w: np.ndarray,
         bias: gtsam.imuBias.ConstantBias,
         method: str,
+        prior: gtsam.NonlinearFactor | None = None,
     ) -> Estimate:
         self._initialized = True
         self.stats.init_method = method
@@ -601,7 +694,14 @@ class VioBackend:
         self._init_keyframes = []
         log.info("back end initialised (%s start) at keyframe %d", method, kf.keyframe_id)
         self._start_smoother(
-            0, kf.keyframe_id, kf.t_ns, gtsam.Pose3(pose_w), vel_w, bias, kf.world_from_body_vo
+            0,
+            kf.keyframe_id,
+            kf.t_ns,
+            gtsam.Pose3(pose_w),
+            vel_w,
+            bias,
+            kf.world_from_body_vo,
+            prior,
         )
         self._last_good.keyframe = kf  # type: ignore[union-attr]
         self._add_observations_as_tracks(kf, 0)
@@ -636,7 +736,10 @@ class VioBackend:
         velocity: np.ndarray,
         bias: gtsam.imuBias.ConstantBias,
         pose_vo: np.ndarray | None,
+        prior: gtsam.NonlinearFactor | None = None,
     ) -> None:
+        """A new smoother at state ``k``, held by ``prior`` (on its pose, velocity and bias
+        keys) or else by the config's ``prior_*`` sigmas about the given values."""
         cfg = self.config
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(cfg.relinearize_threshold)
@@ -646,25 +749,32 @@ class VioBackend:
         params.findUnusedFactorSlots = True
         self._smoother = FixedLagSmoother(cfg.lag_s, params)
         graph = gtsam.NonlinearFactorGraph()
-        sr, sp = cfg.prior_pose_sigma_rad, cfg.prior_pose_sigma_m
-        graph.add(
-            gtsam.PriorFactorPose3(
-                X(k), pose, gtsam.noiseModel.Diagonal.Sigmas(np.array([sr, sr, sr, sp, sp, sp]))
+        if prior is not None:
+            graph.add(prior)
+        else:
+            sr, sp = cfg.prior_pose_sigma_rad, cfg.prior_pose_sigma_m
+            graph.add(
+                gtsam.PriorFactorPose3(
+                    X(k),
+                    pose,
+                    gtsam.noiseModel.Diagonal.Sigmas(np.array([sr, sr, sr, sp, sp, sp])),
+                )
             )
-        )
-        graph.add(
-            gtsam.PriorFactorVector(
-                V(k),
-                np.asarray(velocity, float),
-                gtsam.noiseModel.Isotropic.Sigma(3, cfg.prior_velocity_sigma_m_s),
+            graph.add(
+                gtsam.PriorFactorVector(
+                    V(k),
+                    np.asarray(velocity, float),
+                    gtsam.noiseModel.Isotropic.Sigma(3, cfg.prior_velocity_sigma_m_s),
+                )
             )
-        )
-        sa, sg = cfg.prior_bias_accel_sigma_m_s2, cfg.prior_bias_gyro_sigma_rad_s
-        graph.add(
-            gtsam.PriorFactorConstantBias(
-                B(k), bias, gtsam.noiseModel.Diagonal.Sigmas(np.array([sa, sa, sa, sg, sg, sg]))
+            sa, sg = cfg.prior_bias_accel_sigma_m_s2, cfg.prior_bias_gyro_sigma_rad_s
+            graph.add(
+                gtsam.PriorFactorConstantBias(
+                    B(k),
+                    bias,
+                    gtsam.noiseModel.Diagonal.Sigmas(np.array([sa, sa, sa, sg, sg, sg])),
+                )
             )
-        )
         values = gtsam.Values()
         values.insert(X(k), pose)
         values.insert(V(k), np.asarray(velocity, float))
