@@ -62,13 +62,27 @@ def _spinning_sequence(yaw_rate_rad_s: float, camera: CameraEffects) -> Syntheti
     )
 
 
-def _box_kernel(length_px: float) -> np.ndarray:
-    """Horizontal box of a fractional length (unit sum), centred."""
+def _box_kernel(length_px: float, shift_px: float = 0.0) -> np.ndarray:
+    """Horizontal box of a fractional length (unit sum) centred at ``shift_px``."""
     half = length_px / 2.0
-    n = int(np.ceil(half + 0.5))
+    n = int(np.ceil(half + abs(shift_px) + 0.5))
     x = np.arange(-n, n + 1, dtype=float)
-    w = np.clip(np.minimum(x + 0.5, half) - np.maximum(x - 0.5, -half), 0.0, None)
+    lo, hi = shift_px - half, shift_px + half
+    w = np.clip(np.minimum(x + 0.5, hi) - np.maximum(x - 0.5, lo), 0.0, None)
     return (w / w.sum())[None, :].astype(np.float32)
+
+
+def _mid_exposure_view(
+    seq: SyntheticSequence, index: int, exposure_s: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Frame ``index``'s left image (float32) and cam0's sharp radiance rendered at the middle
+    of its exposure window ``[stamp - exposure_s, stamp]``."""
+    mid_ns = int(seq.frame_times_ns()[index] - exposure_s / 2 * 1e9)
+    cam = seq.calibration.cam0
+    sharp = seq.renderer.cameras[0].render_radiance(
+        seq.world_from_body_at(mid_ns) @ cam.body_from_cam
+    )
+    return sharp, seq.frame(index).left.astype(np.float32)
 
 
 def test_motion_blur_length_is_angular_rate_times_exposure() -> None:
@@ -78,12 +92,8 @@ def test_motion_blur_length_is_angular_rate_times_exposure() -> None:
     omega, exposure_s = 2.0, 0.008
     blurred = _spinning_sequence(omega, CameraEffects(exposure_s=exposure_s))
     index = 20
-    mid_ns = int(blurred.frame_times_ns()[index] - exposure_s / 2 * 1e9)
+    sharp, image = _mid_exposure_view(blurred, index, exposure_s)
     cam = blurred.calibration.cam0
-    sharp = blurred.renderer.cameras[0].render_radiance(
-        blurred.world_from_body_at(mid_ns) @ cam.body_from_cam
-    )
-    image = blurred.frame(index).left.astype(np.float32)
     centre = np.s_[160:320, 226:526]
     lengths = np.arange(0.1, 14.0, 0.1)
     errors = [
@@ -98,16 +108,6 @@ def test_motion_blur_length_is_angular_rate_times_exposure() -> None:
     assert min(errors) < 0.15 * unblurred  # a box blur explains the image; no blur does not
 
 
-def _shifted_box_kernel(length_px: float, shift_px: float) -> np.ndarray:
-    """Horizontal box of a fractional length (unit sum) centred at ``shift_px``."""
-    half = length_px / 2.0
-    n = int(np.ceil(half + abs(shift_px) + 0.5))
-    x = np.arange(-n, n + 1, dtype=float)
-    lo, hi = shift_px - half, shift_px + half
-    w = np.clip(np.minimum(x + 0.5, hi) - np.maximum(x - 0.5, lo), 0.0, None)
-    return (w / w.sum())[None, :].astype(np.float32)
-
-
 def test_blurred_image_is_centred_on_its_mid_exposure_view() -> None:
     """The streak's centroid is the mid-exposure projection: of boxes of the expected length
     shifted along the streak, the centred one explains the blurred image (with sensor noise)
@@ -117,19 +117,14 @@ def test_blurred_image_is_centred_on_its_mid_exposure_view() -> None:
     seq = _spinning_sequence(
         omega, CameraEffects(exposure_s=exposure_s, read_noise_std=1.2, shot_noise_gl=1 / 40)
     )
-    index = 20
-    mid_ns = int(seq.frame_times_ns()[index] - exposure_s / 2 * 1e9)
+    sharp, image = _mid_exposure_view(seq, 20, exposure_s)
     cam = seq.calibration.cam0
-    sharp = seq.renderer.cameras[0].render_radiance(
-        seq.world_from_body_at(mid_ns) @ cam.body_from_cam
-    )
-    image = seq.frame(index).left.astype(np.float32)
     centre = np.s_[160:320, 226:526]
     length_px = cam.intrinsics.fx * omega * exposure_s
     shifts = np.arange(-1.0, 1.0001, 0.02)
 
     def error(shift: float) -> float:
-        blurred = cv2.filter2D(sharp, -1, _shifted_box_kernel(length_px, shift))
+        blurred = cv2.filter2D(sharp, -1, _box_kernel(length_px, shift))
         return float(np.square(blurred[centre] - image[centre]).mean())
 
     errors = [error(d) for d in shifts]
