@@ -1,4 +1,5 @@
-"""IMU preintegration helpers and the back end's IMU buffer (a ``slam.imu_buffer.ImuBuffer``).
+"""IMU preintegration helpers and the back end's IMU buffer (a ``slam.imu_buffer.ImuBuffer``);
+the noise models of the start's pose and bias priors (:func:`pose_noise`, :func:`bias_noise`).
 
 Preintegration uses GTSAM's ``PreintegratedCombinedMeasurements`` (navigation frame z up,
 gravity ``-g z``). Noise densities are Kalibr's continuous-time ones; GTSAM takes continuous-time
@@ -43,6 +44,18 @@ def make_bias(gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray) -> gtsam.imuBias.C
     return gtsam.imuBias.ConstantBias(
         np.asarray(accel_m_s2, dtype=float), np.asarray(gyro_rad_s, dtype=float)
     )
+
+
+def bias_noise(sigma_accel_m_s2: float, sigma_gyro_rad_s: float) -> gtsam.noiseModel.Diagonal:
+    """Diagonal noise on a ``ConstantBias`` (its tangent is accelerometer first, as
+    :func:`make_bias`'s constructor)."""
+    sa, sg = sigma_accel_m_s2, sigma_gyro_rad_s
+    return gtsam.noiseModel.Diagonal.Sigmas(np.array([sa, sa, sa, sg, sg, sg]))
+
+
+def pose_noise(sigma_rad: float, sigma_m: float) -> gtsam.noiseModel.Diagonal:
+    """Diagonal noise on a ``Pose3`` (its tangent is rotation first, then translation)."""
+    return gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma_rad] * 3 + [sigma_m] * 3))
 
 
 def integration_pieces(

@@ -58,7 +58,14 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from slam.backend.imu import integrate_pieces, integration_pieces, make_bias, preintegration_params
+from slam.backend.imu import (
+    bias_noise,
+    integrate_pieces,
+    integration_pieces,
+    make_bias,
+    pose_noise,
+    preintegration_params,
+)
 from slam.backend.init import bias_corrected_deltas, estimate_gyro_bias
 from slam.core.calibration import ImuCalibration
 
@@ -533,20 +540,14 @@ def batch_start(
         values.insert(xk(k), gtsam.Pose3(np.asarray(world_from_body[k], float)))
         values.insert(vk(k), np.asarray(velocities_m_s[k], float))
         values.insert(bk(k), bias)
-    sr, sp = prior_pose_sigmas
     graph.add(
         gtsam.PriorFactorPose3(
             xk(0),
             gtsam.Pose3(np.asarray(world_from_body[0], float)),
-            gtsam.noiseModel.Diagonal.Sigmas(np.array([sr, sr, sr, sp, sp, sp])),
+            pose_noise(*prior_pose_sigmas),
         )
     )
-    sa, sg = prior_bias_sigmas
-    graph.add(
-        gtsam.PriorFactorConstantBias(
-            bk(0), bias, gtsam.noiseModel.Diagonal.Sigmas(np.array([sa, sa, sa, sg, sg, sg]))
-        )
-    )
+    graph.add(gtsam.PriorFactorConstantBias(bk(0), bias, bias_noise(*prior_bias_sigmas)))
     for i, pim in enumerate(imu_factors):
         graph.add(
             gtsam.CombinedImuFactor(xk(i), vk(i), xk(i + 1), vk(i + 1), bk(i), bk(i + 1), pim)

@@ -38,8 +38,10 @@ from slam.backend.config import BackendConfig
 from slam.backend.fixed_lag import FixedLagSmoother
 from slam.backend.imu import (
     backend_imu_buffer,
+    bias_noise,
     integration_pieces,
     make_bias,
+    pose_noise,
     preintegrate,
     preintegration_params,
 )
@@ -752,12 +754,9 @@ class VioBackend:
         if prior is not None:
             graph.add(prior)
         else:
-            sr, sp = cfg.prior_pose_sigma_rad, cfg.prior_pose_sigma_m
             graph.add(
                 gtsam.PriorFactorPose3(
-                    X(k),
-                    pose,
-                    gtsam.noiseModel.Diagonal.Sigmas(np.array([sr, sr, sr, sp, sp, sp])),
+                    X(k), pose, pose_noise(cfg.prior_pose_sigma_rad, cfg.prior_pose_sigma_m)
                 )
             )
             graph.add(
@@ -767,12 +766,11 @@ class VioBackend:
                     gtsam.noiseModel.Isotropic.Sigma(3, cfg.prior_velocity_sigma_m_s),
                 )
             )
-            sa, sg = cfg.prior_bias_accel_sigma_m_s2, cfg.prior_bias_gyro_sigma_rad_s
             graph.add(
                 gtsam.PriorFactorConstantBias(
                     B(k),
                     bias,
-                    gtsam.noiseModel.Diagonal.Sigmas(np.array([sa, sa, sa, sg, sg, sg])),
+                    bias_noise(cfg.prior_bias_accel_sigma_m_s2, cfg.prior_bias_gyro_sigma_rad_s),
                 )
             )
         values = gtsam.Values()
@@ -849,13 +847,12 @@ class VioBackend:
                 rel = gtsam.Pose3(gtsam.Rot3(), prev_pose.rotation().unrotate(prev_vel * dt))
             pose_guess = prev_pose.compose(rel)
             vel_guess = prev_vel
-            sr, sp = cfg.no_imu_pose_sigma_rad, cfg.no_imu_pose_sigma_m
             graph.add(
                 gtsam.BetweenFactorPose3(
                     X(prev.k),
                     X(k),
                     rel,
-                    gtsam.noiseModel.Diagonal.Sigmas(np.array([sr, sr, sr, sp, sp, sp])),
+                    pose_noise(cfg.no_imu_pose_sigma_rad, cfg.no_imu_pose_sigma_m),
                 )
             )
             graph.add(
@@ -867,14 +864,14 @@ class VioBackend:
                 )
             )
             imu = self.imu_calibration
-            sa = imu.accel_random_walk * np.sqrt(dt)
-            sg = imu.gyro_random_walk * np.sqrt(dt)
             graph.add(
                 gtsam.BetweenFactorConstantBias(
                     B(prev.k),
                     B(k),
                     make_bias(np.zeros(3), np.zeros(3)),
-                    gtsam.noiseModel.Diagonal.Sigmas(np.array([sa, sa, sa, sg, sg, sg])),
+                    bias_noise(
+                        imu.accel_random_walk * np.sqrt(dt), imu.gyro_random_walk * np.sqrt(dt)
+                    ),
                 )
             )
         new_values.insert(X(k), pose_guess)
