@@ -79,3 +79,11 @@ def test_a_run_without_loop_closure_is_its_own_bound(tmp_path, capsys) -> None:
     assert "out of reach" in capsys.readouterr().out
     rows = json.loads((tmp_path / "b.json").read_text())
     assert rows[0]["reachable"] is False
+
+
+def test_a_folder_that_is_not_a_run_is_a_one_line_error(tmp_path, capsys) -> None:
+    seq, _ = _run(tmp_path, loop_s=20.0)
+    (tmp_path / "empty").mkdir()
+    assert main([str(seq), str(tmp_path / "empty")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "no stats.json" in err

@@ -19,13 +19,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
 from slam.core.atomic import write_atomic
-from slam.core.errors import InputError
+from slam.core.errors import InputError, SlamError
 from slam.core.trajectory import Trajectory
 from slam.evaluation.io import read_tum, write_tum
 from tools.batch.measure import ate_se3
@@ -122,10 +123,14 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if len(args.pairs) % 2:
         ap.error("give SEQ RUN_DIR pairs")
-    bounds = [
-        live_bound(Path(s), Path(r), args.ratio)
-        for s, r in zip(args.pairs[::2], args.pairs[1::2], strict=True)
-    ]
+    try:
+        bounds = [
+            live_bound(Path(s), Path(r), args.ratio)
+            for s, r in zip(args.pairs[::2], args.pairs[1::2], strict=True)
+        ]
+    except SlamError as e:
+        print(f"live_bound: error: {e}", file=sys.stderr)
+        return 2
     print("| run | first loop | live | live after it | loop-closed | oracle | bar |")
     print("|---|---|---|---|---|---|---|")
     for b in bounds:
