@@ -17,6 +17,7 @@ that one is also changed by relocalisation against the map. ``--no-loop-baseline
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import statistics
@@ -44,10 +45,13 @@ class SuiteEntry:
     seed: int
     scale: str  # "room" or "hall": which accuracy target applies
     revisits: bool = True  # comes back to earlier places: also run with loop closure off
+    camera: str = "clean"  # "clean" or "realistic": `slam synth --camera`
 
     def file_name(self) -> str:
+        camera = "" if self.camera == "clean" else f"-{self.camera}"
         return (
-            f"{self.name}-{self.profile}-{self.duration_s:g}s-seed{self.seed}-v{SUITE_VERSION}.mcap"
+            f"{self.name}-{self.profile}-{self.duration_s:g}s-seed{self.seed}{camera}"
+            f"-v{SUITE_VERSION}.mcap"
         )
 
 
@@ -59,12 +63,34 @@ STANDARD_SUITE = (
 )
 
 
+RENDER_SEED_STEP = 10  # --renders K: seeds s, s + 10, s + 20, ... of each suite entry
+
+
+def suite_variant(
+    suite: tuple[SuiteEntry, ...],
+    duration_s: float | None = None,
+    camera: str = "clean",
+    renders: int = 1,
+) -> tuple[SuiteEntry, ...]:
+    """``suite`` cut to ``duration_s`` per sequence (smoke tests, quick checks), rendered with
+    ``camera`` effects, and ``renders`` renders of each entry that differ only in their noise
+    seed (IMU noise, camera effects: ``slam synth --seed``), so that medians are over
+    renders and not over one draw. The trajectory and the scene are the same in every render."""
+    return tuple(
+        dataclasses.replace(
+            e,
+            duration_s=e.duration_s if duration_s is None else min(e.duration_s, duration_s),
+            seed=e.seed + RENDER_SEED_STEP * k,
+            camera=camera,
+        )
+        for e in suite
+        for k in range(renders)
+    )
+
+
 def quick_suite(duration_s: float) -> tuple[SuiteEntry, ...]:
     """The standard suite cut to ``duration_s`` per sequence (smoke tests, quick checks)."""
-    return tuple(
-        SuiteEntry(e.name, e.profile, min(e.duration_s, duration_s), e.seed, e.scale, e.revisits)
-        for e in STANDARD_SUITE
-    )
+    return suite_variant(STANDARD_SUITE, duration_s)
 
 
 def default_cache_dir() -> Path:
@@ -82,8 +108,20 @@ def ensure_sequence(entry: SuiteEntry, cache_dir: Path, progress: bool = True) -
         return path
     cache_dir.mkdir(parents=True, exist_ok=True)
     print(f"generating {path.name} (cached for later runs)", flush=True)
+    camera, imu_effects = None, None
+    if entry.camera == "realistic":
+        from datasets.synth.camera_model import realistic_camera
+        from datasets.synth.imu_sim import realistic_imu
+
+        camera, imu_effects = realistic_camera(), realistic_imu()
+    elif entry.camera != "clean":
+        raise SlamError(f"suite camera must be clean or realistic, got {entry.camera!r}")
     seq = make_synthetic_sequence(
-        profile=entry.profile, duration_s=entry.duration_s, seed=entry.seed
+        profile=entry.profile,
+        duration_s=entry.duration_s,
+        seed=entry.seed,
+        camera=camera,
+        imu_effects=imu_effects,
     )
     write_sequence_mcap(seq, path, progress=progress)
     return path
@@ -146,7 +184,8 @@ def loop_off_choice(base: ConfigChoice, default_preset: str) -> ConfigChoice | N
 
 
 def markdown_table(rows: list[dict[str, Any]], old: dict[str, dict[str, Any]] | None = None) -> str:
-    """One row per sequence; with ``old`` (by sequence), each number also shows its change."""
+    """One row per sequence; with ``old`` (by sequence), each number also shows its change
+    (and each ATE its ratio to the old one: realistic over clean, new code over old)."""
     head = "| " + " | ".join(title for _, title, _ in COLUMNS) + " |"
     sep = "|" + "|".join("---" for _ in COLUMNS) + "|"
     lines = [head, sep]
@@ -158,10 +197,18 @@ def markdown_table(rows: list[dict[str, Any]], old: dict[str, dict[str, Any]] | 
             if prev is not None and key != "sequence":
                 a, b = row.get(key), prev.get(key)
                 if isinstance(a, (int, float)) and isinstance(b, (int, float)):
-                    cell += f" ({'+' if a - b >= 0 else ''}{fmt(a - b, spec)})"
+                    ratio = f", x{a / b:.2f}" if key.startswith("ate_") and b > 0 else ""
+                    cell += f" ({'+' if a - b >= 0 else ''}{fmt(a - b, spec)}{ratio})"
             cells.append(cell)
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+def suite_run_name(entry: SuiteEntry, suite: tuple[SuiteEntry, ...]) -> str:
+    """A suite entry's name in the batch: its suite name, with its seed when the suite holds
+    several renders of it (``--renders``); the table's rows are the suite names."""
+    renders = sum(e.name == entry.name for e in suite)
+    return entry.name if renders == 1 else f"{entry.name}-seed{entry.seed}"
 
 
 def bench_spec(
@@ -172,6 +219,7 @@ def bench_spec(
     extra_args: list[str] | None = None,
     loop_baseline: bool = True,
     repeats: int = 1,
+    sequential: bool = False,
 ) -> BatchSpec:
     """The batch of a benchmark: every sequence with ``preset``, and the suite's revisiting
     sequences also with loop closure off."""
@@ -182,7 +230,11 @@ def bench_spec(
         path = ensure_sequence(entry, cache_dir)
         both = entry.revisits and loop_off is not None
         seqs.append(
-            SequenceChoice(path, entry.name, (base.name, LOOP_OFF) if both else (base.name,))
+            SequenceChoice(
+                path,
+                suite_run_name(entry, suite or ()),
+                (base.name, LOOP_OFF) if both else (base.name,),
+            )
         )
     for path in sequences:
         if not path.exists():
@@ -193,6 +245,7 @@ def bench_spec(
         [base] + ([loop_off] if loop_off is not None else []),
         repeats=repeats,
         speed="max",
+        sequential=sequential,
         run_args=list(extra_args or []),
     )
 
@@ -207,15 +260,22 @@ def median(values: list[Any]) -> Any:
     return int(m) if all(isinstance(v, int) for v in numbers) and m == int(m) else m
 
 
-def bench_rows(records: list[dict[str, Any]], base_config: str) -> list[dict[str, Any]]:
+def bench_rows(
+    records: list[dict[str, Any]], base_config: str, rows_of: dict[str, str] | None = None
+) -> list[dict[str, Any]]:
     """One row per sequence: the median of every number over the repeats of the base
-    configuration, with the loop-off runs' ATE and the ratio loop-closed / off."""
+    configuration, with the loop-off runs' ATE and the ratio loop-closed / off.
+
+    ``rows_of``: a batch sequence's row when it is not its own (the renders of one suite
+    entry share its row: medians over renders and repeats together)."""
+    rows_of = rows_of or {}
     by_seq: dict[str, dict[str, list[dict[str, Any]]]] = {}
     for r in records:
         if r.get("status") == "ok":
-            by_seq.setdefault(r["sequence"], {}).setdefault(r["config"], []).append(r["metrics"])
+            seq = rows_of.get(r["sequence"], r["sequence"])
+            by_seq.setdefault(seq, {}).setdefault(r["config"], []).append(r["metrics"])
     rows = []
-    for seq in dict.fromkeys(r["sequence"] for r in records):
+    for seq in dict.fromkeys(rows_of.get(r["sequence"], r["sequence"]) for r in records):
         runs = by_seq.get(seq, {})
         base = runs.get(base_config, [])
         keys = dict.fromkeys(k for m in base for k in m)
@@ -245,6 +305,7 @@ def run_benchmark(
     compare: Path | None = None,
     loop_baseline: bool = True,
     repeats: int = 1,
+    sequential: bool = False,
     engine: str = "local",
     address: str = "auto",
     progress: bool = True,
@@ -264,7 +325,9 @@ def run_benchmark(
             raise SlamError(
                 f"--compare {compare}: not a results.json from slam bench ({exc})"
             ) from None
-    spec = bench_spec(sequences, suite, cache_dir, preset, extra_args, loop_baseline, repeats)
+    spec = bench_spec(
+        sequences, suite, cache_dir, preset, extra_args, loop_baseline, repeats, sequential
+    )
 
     def line(record: dict[str, Any]) -> None:
         m = record.get("metrics") or {}
@@ -291,7 +354,8 @@ def run_benchmark(
     from tools.batch.report import read_record
 
     records = [r for t in result.tasks if (r := read_record(out_dir, t)) is not None]
-    rows = bench_rows(records, spec.configs[0].name)
+    rows_of = {suite_run_name(e, suite or ()): e.name for e in suite or ()}
+    rows = bench_rows(records, spec.configs[0].name, rows_of)
     table = markdown_table(rows, old)
     meta = {
         "suite_version": SUITE_VERSION,
@@ -300,6 +364,7 @@ def run_benchmark(
         "extra_args": extra_args or [],
         "loop_baseline": loop_baseline,
         "repeats": repeats,
+        "sequential": sequential,
         "failed_runs": [f"{r['run_id']}: {r.get('error')}" for r in records if r["status"] != "ok"],
         "date": time.strftime("%Y-%m-%d %H:%M:%S"),
         "runs": rows,

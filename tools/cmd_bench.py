@@ -12,6 +12,9 @@ examples:
   slam bench --out b2 --no-suite ~/data/V1_01_easy --config euroc-stereo-imu
   slam bench --out b3 --compare bench_out/results.json   # show the change since then
   slam bench --out b4 --repeats 3                 # medians over 3 runs of each
+  slam bench --out clean --renders 3 --sequential                      # issue-17 style check:
+  slam bench --out real --renders 3 --sequential --camera realistic \
+      --compare clean/results.json                # realistic over clean, ATE ratios (x1.23)
 
 The standard suite (generated once, cached in --cache-dir, deterministic):
   room-figure8 60 s, room-loop 80 s, room-aggressive 60 s (room-scale), hall 140 s (hall-scale),
@@ -23,6 +26,13 @@ report.md, box plots in ate_boxplot.png).
 Every suite sequence revisits earlier places: when loop closure is on, it is run a second time
 with loop closure off (same configuration otherwise), for the columns "ATE loop off" and
 "closed/off" (loop-closed ATE / ATE with loop closure off); --no-loop-baseline skips that.
+--camera realistic renders the suite with `slam synth --camera realistic` (blur, auto-exposure,
+vignetting, stereo gain, sensor noise, IMU vibration and scale errors), cached beside the clean
+files. --renders K renders every suite sequence K times with seeds s, s+10, ... (the same
+trajectory and scene; other noise and effects): one render is one draw, and a single SLAM run
+amplifies small differences, so ratios are decided on medians over renders. --sequential runs
+every frame through every stage in one thread: deterministic accuracy whatever the machine's
+load, but its speed columns say nothing about real time.
 """
 
 
@@ -70,6 +80,24 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=1,
         help="runs of every sequence (the table shows medians; report.md the spread)",
     )
+    p.add_argument(
+        "--renders",
+        type=int,
+        default=1,
+        metavar="K",
+        help="renders of every suite sequence (seeds s, s+10, ...); the table shows medians",
+    )
+    p.add_argument(
+        "--camera",
+        choices=("clean", "realistic"),
+        default="clean",
+        help="suite rendered as slam synth --camera (default clean)",
+    )
+    p.add_argument(
+        "--sequential",
+        action="store_true",
+        help="slam run --sequential: deterministic accuracy (speed columns meaningless)",
+    )
     p.add_argument("--engine", choices=("local", "ray"), default="local", help="as slam batch")
     p.add_argument("--address", default="auto", help="--engine ray: as slam batch")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -84,9 +112,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def handle(args: argparse.Namespace) -> int:
-    from tools.benchmark import STANDARD_SUITE, default_cache_dir, quick_suite, run_benchmark
+    from slam.core.errors import InputError
+    from tools.benchmark import STANDARD_SUITE, default_cache_dir, run_benchmark, suite_variant
 
-    suite = None if args.no_suite else (quick_suite(args.quick) if args.quick else STANDARD_SUITE)
+    if args.renders < 1 or args.repeats < 1:
+        raise InputError("--renders and --repeats must be at least 1")
+    suite = None
+    if not args.no_suite:
+        suite = suite_variant(STANDARD_SUITE, args.quick, args.camera, args.renders)
     _, table, failed = run_benchmark(
         args.out,
         list(args.sequences),
@@ -97,6 +130,7 @@ def handle(args: argparse.Namespace) -> int:
         compare=args.compare,
         loop_baseline=not args.no_loop_baseline,
         repeats=args.repeats,
+        sequential=args.sequential,
         engine=args.engine,
         address=args.address,
         progress=not args.no_progress,
