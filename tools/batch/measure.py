@@ -73,6 +73,11 @@ def evaluate_run(seq_path: Path, run_dir: Path, artefacts: Path | None = None) -
     out["ate_se3_m"] = ape_se3.stats["rmse"]
     out["ate_posyaw_m"] = ape_yaw.stats["rmse"]
     out["gt_path_m"] = ref.trajectory.path_length_m()
+    try:  # the live trajectory's scale error: |Sim(3) scale - 1|, as issues 17 and 18 state it
+        sim3 = prepare(ref, est, EvalOptions(align="sim3")).alignment
+        out["scale_error_pct"] = 100.0 * abs(sim3.scale - 1.0)
+    except SlamError:
+        out["scale_error_pct"] = None
     for delta in (1.0, 10.0):
         try:
             out[f"rpe_{delta:g}m_m"] = rpe_of(p_se3, "trans", delta, "metres").stats["rmse"]
@@ -196,6 +201,7 @@ COLUMNS = (
     ("loop_ratio", "closed/off", "{:.2f}"),
     ("ate_live_after_loop_m", "ATE live after 1st loop (m)", "{:.4f}"),
     ("ate_loop_closed_after_loop_m", "ATE loop-closed after 1st loop (m)", "{:.4f}"),
+    ("scale_error_pct", "scale error (%)", "{:.2f}"),
     ("rpe_1m_m", "RPE 1 m (m)", "{:.4f}"),
     ("rpe_10m_m", "RPE 10 m (m)", "{:.4f}"),
     ("drift_pct", "drift (%)", "{:.3f}"),
