@@ -97,3 +97,18 @@ def test_bench_spec_names_every_render(tmp_path: Path) -> None:
     spec = bench_spec([], suite, tmp_path, sequential=True)
     assert [s.name for s in spec.sequences] == ["room-figure8-seed1", "room-figure8-seed11"]
     assert spec.sequential
+
+
+def test_bench_refuses_an_unknown_suite_sequence_or_zero_renders(tmp_path: Path, capsys) -> None:
+    from tools.cli import main as slam
+
+    out = tmp_path / "b"
+    assert slam(["bench", "--out", str(out), "--only", "room-loop,corridor"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        "slam bench: error: --only: no suite sequence corridor (known: room-figure8, room-loop, "
+        "room-aggressive, hall)"
+    ]
+    assert slam(["bench", "--out", str(out), "--renders", "0"]) == 2
+    assert "--renders and --repeats must be at least 1" in capsys.readouterr().err
+    assert not out.exists()

@@ -12,6 +12,7 @@ examples:
   slam bench --out b2 --no-suite ~/data/V1_01_easy --config euroc-stereo-imu
   slam bench --out b3 --compare bench_out/results.json   # show the change since then
   slam bench --out b4 --repeats 3                 # medians over 3 runs of each
+  slam bench --out b5 --only room-aggressive,hall # some of the suite
   slam bench --out clean --renders 3 --sequential                      # issue-17 style check:
   slam bench --out real --renders 3 --sequential --camera realistic \
       --compare clean/results.json                # realistic over clean, ATE ratios (x1.23)
@@ -81,6 +82,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="runs of every sequence (the table shows medians; report.md the spread)",
     )
     p.add_argument(
+        "--only",
+        default=None,
+        metavar="NAMES",
+        help="these suite sequences only, comma-separated (e.g. room-aggressive,hall)",
+    )
+    p.add_argument(
         "--renders",
         type=int,
         default=1,
@@ -113,13 +120,27 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def handle(args: argparse.Namespace) -> int:
     from slam.core.errors import InputError
-    from tools.benchmark import STANDARD_SUITE, default_cache_dir, run_benchmark, suite_variant
+    from tools.benchmark import (
+        STANDARD_SUITE,
+        SuiteEntry,
+        default_cache_dir,
+        run_benchmark,
+        suite_variant,
+    )
 
     if args.renders < 1 or args.repeats < 1:
         raise InputError("--renders and --repeats must be at least 1")
     suite = None
     if not args.no_suite:
-        suite = suite_variant(STANDARD_SUITE, args.quick, args.camera, args.renders)
+        chosen: tuple[SuiteEntry, ...] = STANDARD_SUITE
+        if args.only:
+            names = [n.strip() for n in args.only.split(",") if n.strip()]
+            unknown = sorted(set(names) - {e.name for e in STANDARD_SUITE})
+            if unknown:
+                known = ", ".join(e.name for e in STANDARD_SUITE)
+                raise InputError(f"--only: no suite sequence {', '.join(unknown)} (known: {known})")
+            chosen = tuple(e for e in STANDARD_SUITE if e.name in names)
+        suite = suite_variant(chosen, args.quick, args.camera, args.renders)
     _, table, failed = run_benchmark(
         args.out,
         list(args.sequences),
