@@ -220,6 +220,7 @@ def bench_spec(
     loop_baseline: bool = True,
     repeats: int = 1,
     sequential: bool = False,
+    progress: bool = True,
 ) -> BatchSpec:
     """The batch of a benchmark: every sequence with ``preset``, and the suite's revisiting
     sequences also with loop closure off."""
@@ -227,7 +228,7 @@ def bench_spec(
     loop_off = loop_off_choice(base, "euroc-stereo-imu") if loop_baseline else None
     seqs = []
     for entry in suite or ():
-        path = ensure_sequence(entry, cache_dir)
+        path = ensure_sequence(entry, cache_dir, progress)
         both = entry.revisits and loop_off is not None
         seqs.append(
             SequenceChoice(
@@ -326,7 +327,15 @@ def run_benchmark(
                 f"--compare {compare}: not a results.json from slam bench ({exc})"
             ) from None
     spec = bench_spec(
-        sequences, suite, cache_dir, preset, extra_args, loop_baseline, repeats, sequential
+        sequences,
+        suite,
+        cache_dir,
+        preset,
+        extra_args,
+        loop_baseline,
+        repeats,
+        sequential,
+        progress,
     )
 
     def line(record: dict[str, Any]) -> None:
