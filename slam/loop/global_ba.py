@@ -512,7 +512,7 @@ def global_bundle_adjustment(
                 )
                 for f in np.unique(reweigh[reweigh > 1.0]).tolist()
             }
-            rows_of = {
+            rows_of: dict[int, gtsam.noiseModel.Base] = {
                 r: noise_of[float(reweigh[kf_index[r]])]
                 for r in np.flatnonzero(reweigh[kf_index] > 1.0).tolist()
             }
