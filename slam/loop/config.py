@@ -190,7 +190,8 @@ class LoopClosureConfig:
     factor (1: off, every keyframe at ``global_ba_pixel_sigma_px``). Dark, high-gain, blurred
     frames track worse (realistic room-aggressive: 0.12 px median against the truth at 0-4 ms
     exposures, 0.27-0.31 px at 8-11 ms). Off by default: 2 took the adjustment's keyframe ATE
-    3-4 % lower on realistic room-aggressive, ~1 % on clean (BENCHMARKS.md, agg17b)."""
+    4-6 % lower on three realistic room-aggressive renders, but 4-5 % higher on clean
+    room-loop and hall (BENCHMARKS.md, agg17b)."""
     global_ba_odometry_sigma_scale: float = bounded(0.7, ge=0)
     """The odometry edges enter the global adjustment with their pose-graph sigmas times this
     (0: left out). Held tighter (0.3), they passed the odometry's scale error (0.05-0.1 % on
