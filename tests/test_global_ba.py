@@ -16,6 +16,7 @@ from slam.loop.global_ba import (
     GlobalBaParams,
     KeyframeObservations,
     _fuse,
+    _keyframe_sigma_factors,
     _outlier_limit,
     _spread_rows,
     _thinned,
@@ -300,3 +301,50 @@ def test_outlier_limit_is_three_robust_sigmas() -> None:
     assert _outlier_limit(np.r_[e[:10000], inf], e[10000:], p) == pytest.approx(0.75, rel=0.03)
     assert _outlier_limit(e, e, GlobalBaParams(outlier_sigmas=0.0)) == 3.0
     assert _outlier_limit(5 * e, e, GlobalBaParams(outlier_sigmas=30.0)) == 3.0  # at most 3 px
+
+
+def test_keyframe_sigma_factors() -> None:
+    """A keyframe's factor is its median error over the round's, in [1, max], to 0.1."""
+    rng = np.random.default_rng(2)
+    kf_index = np.repeat(np.arange(4), 500)
+    scale = np.array([1.0, 1.0, 2.0, 9.0])[kf_index]
+    e = np.linalg.norm(rng.normal(0, 0.2, (len(kf_index), 2)), axis=1) * scale
+    e_r = np.full(len(e), np.inf)  # no right observations
+    overall = np.median(e)
+    f = _keyframe_sigma_factors(e, e_r, kf_index, 5, GlobalBaParams(keyframe_sigma_max=3.0))
+    assert f is not None
+    assert f[0] == f[1] == 1.0  # below the round's median: the plain sigma
+    med2 = np.median(e[kf_index == 2])
+    assert f[2] == pytest.approx(round(med2 / overall, 1))
+    assert f[3] == 3.0  # clipped
+    assert f[4] == 1.0  # a keyframe without observations
+    assert (
+        _keyframe_sigma_factors(e[:1000], e_r[:1000], kf_index[:1000], 2, GlobalBaParams()) is None
+    )
+
+
+def test_noisy_keyframes_weigh_less(loop_world) -> None:
+    """Keyframes whose observations are 5x noisier (dark, high-gain, blurred frames) given the
+    larger sigma their own residuals show: the adjusted keyframes come out closer to the truth."""
+    calib, obs, true, odom, edges, pairs, t_ns = loop_world
+    rng = np.random.default_rng(11)
+    noisy = {}
+    for k, o in obs.items():
+        if k % 4 == 1:  # every fourth keyframe: 1 px per axis instead of 0.2
+            left = o.left_px + rng.normal(0, 1.0, o.left_px.shape)
+            right = o.right_px + rng.normal(0, 1.0, o.right_px.shape)
+            noisy[k] = KeyframeObservations(o.landmark_ids, left, right, o.points_cam0)
+        else:
+            noisy[k] = o
+    poses = {k: odom[k] for k in range(len(odom))}
+
+    def ate(params: GlobalBaParams) -> float:
+        res = global_bundle_adjustment(calib, noisy, poses, edges, pairs, 0, t_ns, params)
+        assert res is not None
+        est = np.array([res.world_from_body[k][:3, 3] for k in poses])
+        return ate_se3_rmse_m(est, true[:, :3, 3])
+
+    # no outlier round, so the noisy keyframes keep their observations either way
+    plain = ate(GlobalBaParams(outlier_sigmas=0.0, outlier_px=100.0))
+    weighed = ate(GlobalBaParams(outlier_sigmas=0.0, outlier_px=100.0, keyframe_sigma_max=8.0))
+    assert weighed < 0.85 * plain, (weighed, plain)

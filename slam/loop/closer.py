@@ -926,6 +926,7 @@ class LoopCloser:
             params=GlobalBaParams(
                 pixel_sigma_px=c.global_ba_pixel_sigma_px,
                 outlier_sigmas=c.global_ba_outlier_sigmas,
+                keyframe_sigma_max=c.global_ba_keyframe_sigma_max,
                 odometry_sigma_scale=c.global_ba_odometry_sigma_scale,
                 time_budget_s=budget_s,
                 max_keyframes_per_landmark=c.global_ba_max_keyframes_per_landmark,

@@ -184,6 +184,14 @@ class LoopClosureConfig:
     put more tracks 0.3-1 px off, which a fixed 3 px threshold kept. The fitted errors are
     smaller than the tracks' (landmarks seen by few keyframes fit them closely): on the suite
     the limit came out 0.2-0.7 px and dropped 20-29 % of the observations."""
+    global_ba_keyframe_sigma_max: float = bounded(1.0, ge=1, le=10)
+    """After the global adjustment's first round, a keyframe whose own reprojection errors
+    (median) are larger than the round's has its pixel sigma grown by the ratio, at most this
+    factor (1: off, every keyframe at ``global_ba_pixel_sigma_px``). Dark, high-gain, blurred
+    frames track worse (realistic room-aggressive: 0.12 px median against the truth at 0-4 ms
+    exposures, 0.27-0.31 px at 8-11 ms). Off by default: 2 took the adjustment's keyframe ATE
+    4-6 % lower on three realistic room-aggressive renders, but 4-5 % higher on clean
+    room-loop and hall (BENCHMARKS.md, agg17b)."""
     global_ba_odometry_sigma_scale: float = bounded(0.7, ge=0)
     """The odometry edges enter the global adjustment with their pose-graph sigmas times this
     (0: left out). Held tighter (0.3), they passed the odometry's scale error (0.05-0.1 % on

@@ -18,7 +18,8 @@ and (where matched) right undistorted pixel, the odometry edges of the pose grap
 sigmas, scaled by ``odometry_sigma_scale``, behind a Huber kernel), and weak priors on every
 keyframe's starting pose as the gauge.
 Levenberg-Marquardt, then observations reprojecting worse than ``outlier_sigmas`` robust
-sigmas of the round's errors (at most ``outlier_px``) are dropped and it runs again. Written
+sigmas of the round's errors (at most ``outlier_px``) are dropped and it runs again (with
+``keyframe_sigma_max`` > 1, keyframes noisier than the round weighed by their own errors). Written
 with GTSAM's factors because no Python library does stereo-rig BA with relative-pose priors;
 the data handling is numpy.
 """
@@ -83,6 +84,12 @@ class GlobalBaParams:
     ``outlier_px`` alone). The sigma follows the cameras' noise: tracks on clean synthetic
     images end at ~0.2 px, with the ``--camera realistic`` effects ~0.25 px, while
     ``outlier_px`` is 12 such sigmas."""
+    keyframe_sigma_max: float = 1.0
+    """After the first round, a keyframe whose own reprojection errors are larger than the
+    round's (robust sigmas: median / sqrt(2 ln 2)) has its observations' pixel sigma grown by
+    the ratio, at most this factor (1: every keyframe weighs ``pixel_sigma_px``). Dark,
+    high-gain and blurred frames track worse: on realistic room-aggressive the observations'
+    median error against the truth is 0.12 px at 0-4 ms exposures, 0.27 px at 8-11 ms."""
     max_iterations: int = 15
     relative_error_tol: float = 1e-3
     """Stop when an iteration lowers the error by less than this share. On the four suite
@@ -405,15 +412,21 @@ def global_bundle_adjustment(
     # Each good landmark's row in gtsam.utilities.extractPoint3 (Values sorted by key).
     point_slot = np.cumsum(good_lm) - 1
 
-    def add_projections(g: gtsam.NonlinearFactorGraph, rows: np.ndarray, cam: int) -> np.ndarray:
-        """Add a projection factor for each row in ``cam``; their factor indices in ``g``."""
+    def add_projections(
+        g: gtsam.NonlinearFactorGraph,
+        rows: np.ndarray,
+        cam: int,
+        noise_of_row: dict[int, gtsam.noiseModel.Base] | None = None,
+    ) -> np.ndarray:
+        """Add a projection factor for each row in ``cam`` (``noise_of_row``: rows whose
+        noise is not ``noise_px``); their factor indices in ``g``."""
         first = int(g.size())
         px = left if cam == 0 else right
         for r in rows.tolist():
             g.add(
                 gtsam.GenericProjectionFactorCal3_S2(
                     px[r],
-                    noise_px,
+                    noise_px if noise_of_row is None else noise_of_row.get(r, noise_px),
                     pose_key_of_row[r],
                     point_key_of_row[r],
                     cal[cam],
@@ -461,7 +474,7 @@ def global_bundle_adjustment(
     factor_r = np.full(len(lid), -1)
     factor_l[mask_l] = add_projections(full, np.flatnonzero(mask_l), 0)
     factor_r[mask_r] = add_projections(full, np.flatnonzero(mask_r), 1)
-    for _ in range(2):  # solve; drop outliers; solve again
+    for round_ in range(2):  # solve; drop outliers; solve again
         if deadline is not None and iteration_s is not None:
             if time.perf_counter() + iteration_s > deadline:
                 time_boxed = True  # no time for the second round's iterations
@@ -480,10 +493,34 @@ def global_bundle_adjustment(
         dropped = np.r_[factor_l[mask_l & ~(e_l < limit)], factor_r[mask_r & ~(e_r < limit)]]
         mask_l &= e_l < limit
         mask_r &= e_r < limit
-        if time_boxed or not len(dropped):
+        reweigh = (
+            _keyframe_sigma_factors(e_l, e_r, kf_index, len(kf_ids), p)
+            if round_ == 0 and p.keyframe_sigma_max > 1.0
+            else None
+        )
+        if time_boxed or (not len(dropped) and reweigh is None):
             break
         for i in dropped.tolist():
             full.remove(i)
+        if reweigh is not None:
+            # The kept observations of keyframes noisier than the round's: their factors again,
+            # with the grown sigma.
+            noise_of = {
+                f: gtsam.noiseModel.Robust.Create(
+                    gtsam.noiseModel.mEstimator.Huber.Create(p.huber_k),
+                    gtsam.noiseModel.Isotropic.Sigma(2, p.pixel_sigma_px * f),
+                )
+                for f in np.unique(reweigh[reweigh > 1.0]).tolist()
+            }
+            rows_of: dict[int, gtsam.noiseModel.Base] = {
+                r: noise_of[float(reweigh[kf_index[r]])]
+                for r in np.flatnonzero(reweigh[kf_index] > 1.0).tolist()
+            }
+            for factors, mask, cam in ((factor_l, mask_l, 0), (factor_r, mask_r, 1)):
+                redo = np.flatnonzero(mask & (reweigh[kf_index] > 1.0))
+                for i in factors[redo].tolist():
+                    full.remove(i)
+                factors[redo] = add_projections(full, redo, cam, rows_of)
     e_l, e_r = errors(result, mask_l, mask_r)
     finite = np.concatenate([e_l[np.isfinite(e_l)], e_r[np.isfinite(e_r)]])
     rms_after = float(np.sqrt(np.mean(finite**2))) if len(finite) else 0.0
@@ -501,6 +538,28 @@ def global_bundle_adjustment(
         time_boxed=time_boxed,
         outlier_limit_px=p.outlier_px if outlier_limit is None else outlier_limit,
     )
+
+
+def _keyframe_sigma_factors(
+    e_l: np.ndarray, e_r: np.ndarray, kf_index: np.ndarray, n_keyframes: int, p: GlobalBaParams
+) -> np.ndarray | None:
+    """Each keyframe's pixel sigma factor (``GlobalBaParams.keyframe_sigma_max``): its robust
+    residual sigma over the round's, clipped to [1, max] and rounded to 0.1 (a few noise
+    models); None when no keyframe gets more than 1. ``e_l``, ``e_r``: inf where left out."""
+    err = np.r_[e_l, e_r]
+    kf = np.r_[kf_index, kf_index]
+    ok = np.isfinite(err)
+    if not ok.any():
+        return None
+    overall = float(np.median(err[ok]))
+    med = np.full(n_keyframes, overall)
+    order = np.argsort(kf[ok], kind="stable")
+    kf_sorted, err_sorted = kf[ok][order], err[ok][order]
+    starts = np.r_[0, np.flatnonzero(np.diff(kf_sorted)) + 1]
+    for a, b in zip(starts.tolist(), np.r_[starts[1:], len(kf_sorted)].tolist(), strict=True):
+        med[kf_sorted[a]] = np.median(err_sorted[a:b])
+    factor = np.round(np.clip(med / max(overall, 1e-9), 1.0, p.keyframe_sigma_max), 1)
+    return factor if (factor > 1.0).any() else None
 
 
 def _outlier_limit(e_l: np.ndarray, e_r: np.ndarray, p: GlobalBaParams) -> float:
