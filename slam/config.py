@@ -111,10 +111,6 @@ class FrontendConfig:
     projection into the right image is the start)."""
     stereo_known_max_shift_px: float = bounded(3.0, gt=0)
     """A tracked landmark's right-image match must lie this close to its projection."""
-    stereo_klt_epsilon_px: float = bounded(0.03, gt=0, le=1)
-    """Left-right KLT stops once an update is smaller than this, pixels (or after 20
-    iterations). It stops short of the optimum on the side of its start (a tracked landmark's
-    projection, or the nominal depth), and the map's scale hangs on disparities to ~0.005 px."""
     min_depth_m: float = bounded(0.2, gt=0, lt_field="max_depth_m")
     """Closest accepted stereo depth, metres."""
     max_depth_m: float = bounded(25.0, gt=0)

@@ -98,18 +98,12 @@ class StereoMatcher:
                 guess_to=guess[known],
                 levels=self.cfg.stereo_known_point_levels,
                 backward_check=False,
-                epsilon_px=self.cfg.stereo_klt_epsilon_px,
             )
             shift = np.linalg.norm(px_right[known] - guess[known], axis=1)
             ok[known] &= shift < self.cfg.stereo_known_max_shift_px
         if (~known).any():
             px_right[~known], ok[~known] = track_klt(
-                pyr_left,
-                pyr_right,
-                pixels_left[~known],
-                self.cfg,
-                guess_to=guess[~known],
-                epsilon_px=self.cfg.stereo_klt_epsilon_px,
+                pyr_left, pyr_right, pixels_left[~known], self.cfg, guess_to=guess[~known]
             )
         norm1 = self.cam1.undistort_points(px_right)
         rays1 = np.hstack([norm1, np.ones((n, 1))])
