@@ -111,6 +111,12 @@ class FrontendConfig:
     projection into the right image is the start)."""
     stereo_known_max_shift_px: float = bounded(3.0, gt=0)
     """A tracked landmark's right-image match must lie this close to its projection."""
+    stereo_affine_refine: bool = False
+    """Re-fit each left-right KLT match with an affine warp of the left patch
+    (``StereoMatcher._refine_affine``): removes the 0.01-0.02 px disparity bias of a
+    translation-only match on surfaces seen at a grazing angle, which stretched the hall's
+    adjusted map along its length (BENCHMARKS.md, branch hall17). Off by default: not yet
+    measured on the whole suite."""
     min_depth_m: float = bounded(0.2, gt=0, lt_field="max_depth_m")
     """Closest accepted stereo depth, metres."""
     max_depth_m: float = bounded(25.0, gt=0)

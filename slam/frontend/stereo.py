@@ -16,6 +16,7 @@ import numpy as np
 from slam.config import FrontendConfig
 from slam.core.calibration import Calibration
 from slam.core.geometry import skew, transform_points
+from slam.frontend.affine_klt import build_templates, refine_affine
 from slam.frontend.features import (
     ReducedImages,
     brightness_ratio,
@@ -105,6 +106,8 @@ class StereoMatcher:
             px_right[~known], ok[~known] = track_klt(
                 pyr_left, pyr_right, pixels_left[~known], self.cfg, guess_to=guess[~known]
             )
+        if self.cfg.stereo_affine_refine and ok.any():
+            px_right[ok] = self._refine_affine(pyr_left, pyr_right, pixels_left[ok], px_right[ok])
         norm1 = self.cam1.undistort_points(px_right)
         rays1 = np.hstack([norm1, np.ones((n, 1))])
         # Epipolar distance of the right ray from the line E x0, in right-image pixels.
@@ -125,3 +128,24 @@ class StereoMatcher:
             (z0 > self.cfg.min_depth_m) & (z0 < self.cfg.max_depth_m) & (z1 > self.cfg.min_depth_m)
         )
         return StereoMatches(ok=ok, pixels_right=px_right.astype(np.float64), points_cam0_m=pts)
+
+    def _refine_affine(
+        self,
+        image_left: np.ndarray,
+        image_right: np.ndarray,
+        pixels_left: np.ndarray,
+        pixels_right: np.ndarray,
+    ) -> np.ndarray:
+        """The right pixels (N, 2) of KLT matches re-fitted with an affine warp of the left
+        patch (``affine_klt.refine_affine``, gain and bias matched); a match whose fit fails
+        keeps its KLT pixel.
+
+        Why: on a surface seen at a grazing angle (a floor down a hall) the disparity changes
+        across the KLT window, and a translation-only match lands on a gradient-weighted mean
+        of it, 0.01-0.02 px off the centre's disparity; the map's scale hangs on disparities
+        to a few thousandths of a pixel (BENCHMARKS.md, branch hall17)."""
+        templates = build_templates(image_left, pixels_left, self.cfg.klt_window_px // 2)
+        fit = refine_affine(templates, image_right, pixels_right, iterations=10, max_shift_px=0.5)
+        out = np.array(pixels_right, dtype=np.float32, copy=True)
+        out[fit.ok] = fit.pts_px[fit.ok]
+        return out
