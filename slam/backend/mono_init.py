@@ -58,6 +58,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
+from slam.backend.config import BackendConfig
 from slam.backend.imu import (
     bias_noise,
     integrate_pieces,
@@ -66,7 +67,6 @@ from slam.backend.imu import (
     pose_noise,
     preintegration_params,
 )
-from slam.backend.config import BackendConfig
 from slam.backend.init import bias_corrected_deltas, estimate_gyro_bias
 from slam.core.calibration import ImuCalibration
 
