@@ -211,6 +211,12 @@ class FrontendConfig:
     mono_init_depth_m: float = bounded(2.0, gt=0)
     """Monocular start: the map's unit until the back end's alignment fixes the scale (the
     two-view baseline is chosen so the median depth is this)."""
+    mono_init_keyframe_interval_s: float = bounded(0.0, ge=0)
+    """Monocular start: 0 = off. Else, until the back end's alignment has fixed the scale, a
+    keyframe at least this often (beside the usual rules, ``keyframe_max_interval_s`` after):
+    on slow motion keyframes come 0.25-0.5 s apart, so the alignment's
+    ``backend.mono_init_keyframes`` arrive 3-4 s after the motion; denser, its window's
+    excitation (the alignment's own checks) decides when the start comes."""
     mono_min_angle_deg: float = bounded(1.0, gt=0, lt=90)
     """A candidate becomes a landmark once the rays of its first view and the current
     keyframe's differ by this angle."""

@@ -78,3 +78,33 @@ def test_translation_gives_the_structure_up_to_scale(scene):
     assert (
         np.degrees(np.arccos(centre @ truth / np.linalg.norm(centre) / np.linalg.norm(truth))) < 1.0
     )
+
+
+def test_keyframes_come_at_least_every_interval_until_the_scale_is_known(scene):
+    """``mono_init_keyframe_interval_s``: with every landmark still tracked and no parallax the
+    usual rules make no keyframe before ``keyframe_max_interval_s``; until the back end has
+    fixed the scale (``reframed``) one comes after the interval, afterwards the usual rules
+    apply again; off (the default), nothing changes."""
+    mono, intr, _ = scene
+    cfg = FrontendConfig(mono_init_keyframe_interval_s=0.2)
+    assert FrontendConfig().mono_init_keyframe_interval_s == 0.0
+    assert cfg.mono_init_keyframe_interval_s < cfg.keyframe_max_interval_s
+    rng = np.random.default_rng(1)
+    px = rng.uniform([0, 0], [intr.width, intr.height], (100, 2)).astype(np.float32)
+
+    def tracking(fe):
+        fe.ids = np.arange(100, dtype=np.int64)
+        fe.px = px.copy()
+        fe.kf_px = {i: px[i].copy() for i in range(100)}
+        fe.kf_num_landmarks = 100
+        fe.kf_t_ns = 1_000_000_000
+        return fe
+
+    off, on = tracking(MonoFrontEnd(mono, FrontendConfig())), tracking(MonoFrontEnd(mono, cfg))
+    for since_s, want_on in ((0.1, False), (0.19, False), (0.21, True), (0.4, True)):
+        t_ns = 1_000_000_000 + int(since_s * 1e9)
+        assert not off._need_keyframe(t_ns, 100)
+        assert on._need_keyframe(t_ns, 100) is want_on
+    on.reframed = True  # the scale is known: the usual rules
+    assert not on._need_keyframe(1_000_000_000 + int(0.4e9), 100)
+    assert on._need_keyframe(1_000_000_000 + int(0.5e9), 100)

@@ -3,6 +3,8 @@ known truth: scale, gravity, velocities and gyro bias; weak excitation is reject
 
 from __future__ import annotations
 
+import dataclasses
+
 import gtsam
 import numpy as np
 import pytest
@@ -317,3 +319,36 @@ def test_batch_start_recovers_scale_and_velocity_of_the_window(seed, scale_error
     off = gtsam.Values(at)
     off.update(keys[1], res.velocities_m_s[-1] + 3.0 * sigma_v)
     assert res.prior.error(off) > 1.0
+
+
+def test_start_gate_waits_for_the_keyframes_or_the_excitation():
+    """When the monocular start's alignment is tried, and under which scale-std gate: by default
+    (the preset) only from ``mono_init_keyframes`` keyframes spanning ``mono_init_min_span_s``;
+    with ``mono_init_span_s`` also from ``mono_init_span_keyframes`` once they span that long;
+    with ``mono_init_early_max_scale_std`` at every keyframe from ``mono_init_span_keyframes`` on,
+    under the stricter of the two gates."""
+    from slam.backend.config import BackendConfig
+    from slam.backend.mono_init import start_gate
+    from slam.config import preset_config
+
+    cfg = preset_config("euroc-mono-imu").backend
+    assert cfg.mono_init_early_max_scale_std == 0.0 and cfg.mono_init_span_s == 0.0
+    full = cfg.mono_init_max_scale_std
+    assert [start_gate(n, 3.0, cfg) for n in (5, 6, 9)] == [None, None, None]
+    assert start_gate(10, 3.0, cfg) == full
+    assert start_gate(30, 0.9, cfg) is None  # too short, however many
+    span = dataclasses.replace(cfg, mono_init_span_s=1.85)
+    assert start_gate(6, 1.8, span) is None
+    assert start_gate(6, 1.9, span) == full
+    early = dataclasses.replace(cfg, mono_init_early_max_scale_std=0.01)
+    assert start_gate(5, 2.0, early) is None
+    assert start_gate(6, 0.9, early) is None
+    assert start_gate(6, 1.0, early) == 0.01
+    assert start_gate(9, 2.0, early) == 0.01
+    assert start_gate(10, 2.0, early) == full
+    loose = dataclasses.replace(cfg, mono_init_early_max_scale_std=0.5)
+    assert start_gate(6, 1.0, loose) == full  # never looser than the start's own gate
+    both = dataclasses.replace(early, mono_init_span_s=1.85)
+    assert start_gate(7, 1.5, both) == 0.01
+    assert start_gate(7, 1.9, both) == full
+    assert BackendConfig().mono_init_early_max_scale_std == 0.0

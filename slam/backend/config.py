@@ -146,7 +146,16 @@ class BackendConfig:
     on slow motion keyframes come every 0.25-0.5 s, and time, not their number, is what the
     accelerations that fix the scale need."""
     mono_init_span_keyframes: int = bounded(6, ge=4, le_field="mono_init_keyframes")
-    """Monocular start: the fewest keyframes ``mono_init_span_s`` tries the alignment with."""
+    """Monocular start: the fewest keyframes ``mono_init_span_s`` and
+    ``mono_init_early_max_scale_std`` try the alignment with."""
+    # bounds: a fraction of the scale, like mono_init_max_scale_std (the stricter one applies)
+    mono_init_early_max_scale_std: float = bounded(0.0, ge=0, lt=1)
+    """Monocular start: 0 = off. Else the alignment is tried at every keyframe from
+    ``mono_init_span_keyframes`` on (once they span ``mono_init_min_span_s``), and a window of
+    fewer than ``mono_init_keyframes`` is accepted when the scale's standard deviation is at
+    most this fraction of it (and ``mono_init_max_scale_std``; the other checks as always):
+    the window's excitation, which that standard deviation measures, decides when the start
+    comes, not the keyframes' number or a fixed span (``slam.backend.mono_init.start_gate``)."""
 
     mono_init_batch: bool = False
     """Monocular start: after an accepted alignment, one visual-inertial bundle adjustment over

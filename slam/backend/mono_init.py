@@ -58,6 +58,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
+from slam.backend.config import BackendConfig
 from slam.backend.imu import (
     bias_noise,
     integrate_pieces,
@@ -95,6 +96,27 @@ class MonoAlignment:
     """The scale's standard deviation from the fit's residuals (its excitation check)."""
     accel_bias_sigma_m_s2: float
     """The accelerometer-bias prior of this solution (the retry's when that was accepted)."""
+
+
+def start_gate(n_keyframes: int, span_s: float, cfg: BackendConfig) -> float | None:
+    """The scale-std gate (fraction of the scale) a monocular start's alignment is tried with
+    on a window of ``n_keyframes`` keyframes spanning ``span_s`` seconds; None: not tried yet.
+
+    ``mono_init_keyframes`` keyframes (or, with ``mono_init_span_s``, at least
+    ``mono_init_span_keyframes`` spanning that long) are tried under ``mono_init_max_scale_std``;
+    with ``mono_init_early_max_scale_std`` fewer (from ``mono_init_span_keyframes``) are tried
+    under that stricter gate: a well-excited window starts at once, a gentle one waits."""
+    if span_s < cfg.mono_init_min_span_s:
+        return None
+    if n_keyframes >= cfg.mono_init_keyframes:
+        return cfg.mono_init_max_scale_std
+    if n_keyframes < cfg.mono_init_span_keyframes:
+        return None
+    if cfg.mono_init_span_s > 0 and span_s >= cfg.mono_init_span_s:
+        return cfg.mono_init_max_scale_std
+    if cfg.mono_init_early_max_scale_std > 0:
+        return min(cfg.mono_init_early_max_scale_std, cfg.mono_init_max_scale_std)
+    return None
 
 
 def _preintegrated(

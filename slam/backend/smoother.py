@@ -54,7 +54,13 @@ from slam.backend.init import (
     still_init_kalman,
     world_from_vo_gravity,
 )
-from slam.backend.mono_init import align_mono, batch_start, check_scale, refine_vo_poses
+from slam.backend.mono_init import (
+    align_mono,
+    batch_start,
+    check_scale,
+    refine_vo_poses,
+    start_gate,
+)
 from slam.backend.time_offset import OnlineTimeOffset
 from slam.core.calibration import Calibration
 from slam.core.errors import SlamError
@@ -436,13 +442,8 @@ class VioBackend:
         kfs = self._init_keyframes = self._init_keyframes[-3 * cfg.mono_init_keyframes :]
         self.imu.trim(kfs[0].t_ns - 1_000_000_000)
         self.stats.init_state = "initialising"
-        span_s = (kfs[-1].t_ns - kfs[0].t_ns) * 1e-9
-        enough = len(kfs) >= cfg.mono_init_keyframes or (
-            cfg.mono_init_span_s > 0
-            and len(kfs) >= cfg.mono_init_span_keyframes
-            and span_s >= cfg.mono_init_span_s
-        )
-        if not enough or span_s < cfg.mono_init_min_span_s:
+        max_scale_std = start_gate(len(kfs), (kfs[-1].t_ns - kfs[0].t_ns) * 1e-9, cfg)
+        if max_scale_std is None:
             return self._uninitialised_estimate(kf, pose_vo)
         t, g, a = self.imu.arrays()
         body_from_cam0 = self._body_from_cam[0]
@@ -469,7 +470,7 @@ class VioBackend:
             cfg.mono_init_max_gravity_error,
             cfg.mono_init_max_scale_disagreement,
             accel_bias_sigma_m_s2=cfg.mono_init_accel_bias_sigma,
-            max_scale_std=cfg.mono_init_max_scale_std,
+            max_scale_std=max_scale_std,
             retry_accel_bias_sigma_m_s2=cfg.mono_init_retry_accel_bias_sigma,
         )
         if res is None:
@@ -483,6 +484,7 @@ class VioBackend:
                     "scale": round(res.scale, 5),
                     "scale_first_keyframes": round(res.scale_subset, 5),
                     "scale_std": round(res.scale_std, 5),
+                    "max_scale_std": max_scale_std,
                     "gravity_norm_free_m_s2": round(res.gravity_norm_free_m_s2, 4),
                     "accel_bias_sigma_m_s2": res.accel_bias_sigma_m_s2,
                     "accepted": res.accepted,

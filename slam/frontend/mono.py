@@ -354,6 +354,14 @@ class MonoFrontEnd(FrontEnd):
         return result
 
     # ------------------------------------------------------------------ keyframes
+    def _need_keyframe(self, t_ns: int, num_inliers: int) -> bool:
+        """As the stereo front end's, and before the scale is known a keyframe at least every
+        ``mono_init_keyframe_interval_s`` (the start's alignment needs keyframes over time)."""
+        every_s = self.cfg.mono_init_keyframe_interval_s
+        if not self.reframed and every_s > 0 and (t_ns - self.kf_t_ns) * 1e-9 >= every_s:
+            return True
+        return super()._need_keyframe(t_ns, num_inliers)
+
     def _make_keyframe(
         self, frame: StereoFrame, pyr: np.ndarray, new_segment: bool = False
     ) -> Keyframe | None:
