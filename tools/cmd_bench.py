@@ -13,9 +13,9 @@ examples:
   slam bench --out b3 --compare bench_out/results.json   # show the change since then
   slam bench --out b4 --repeats 3                 # medians over 3 runs of each
   slam bench --out b5 --only room-aggressive,hall # some of the suite
-  slam bench --out clean --renders 3 --sequential                      # issue-17 style check:
-  slam bench --out real --renders 3 --sequential --camera realistic \
-      --compare clean/results.json                # realistic over clean, ATE ratios (x1.23)
+  slam bench --out clean --renders 3 --sequential   # 3 renders of each, deterministic runs
+  slam bench --out real --renders 3 --sequential --camera realistic --compare clean/results.json
+                                                  # realistic over clean: ATE ratios (x1.23)
 
 The standard suite (generated once, cached in --cache-dir, deterministic):
   room-figure8 60 s, room-loop 80 s, room-aggressive 60 s (room-scale), hall 140 s (hall-scale),
