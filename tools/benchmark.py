@@ -102,20 +102,14 @@ def ensure_sequence(entry: SuiteEntry, cache_dir: Path, progress: bool = True) -
     """The cached MCAP of a suite entry, generated first if missing."""
     from datasets.mcap_io import write_sequence_mcap
     from datasets.synth import make_synthetic_sequence
+    from datasets.synth.camera_model import rig_effects
 
     path = cache_dir / entry.file_name()
     if path.exists():
         return path
     cache_dir.mkdir(parents=True, exist_ok=True)
     print(f"generating {path.name} (cached for later runs)", flush=True)
-    camera, imu_effects = None, None
-    if entry.camera == "realistic":
-        from datasets.synth.camera_model import realistic_camera
-        from datasets.synth.imu_sim import realistic_imu
-
-        camera, imu_effects = realistic_camera(), realistic_imu()
-    elif entry.camera != "clean":
-        raise SlamError(f"suite camera must be clean or realistic, got {entry.camera!r}")
+    camera, imu_effects = rig_effects(entry.camera)
     seq = make_synthetic_sequence(
         profile=entry.profile,
         duration_s=entry.duration_s,

@@ -38,6 +38,8 @@ load, but its speed columns say nothing about real time.
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    from datasets.synth.camera_model import CAMERA_BUNDLES
+
     p = subparsers.add_parser(
         "bench",
         help="run the benchmark suite and tabulate accuracy and speed",
@@ -96,7 +98,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--camera",
-        choices=("clean", "realistic"),
+        choices=CAMERA_BUNDLES,
         default="clean",
         help="suite rendered as slam synth --camera (default clean)",
     )

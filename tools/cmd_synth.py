@@ -129,12 +129,9 @@ def parse_numbers(text: str | None, option: str, count: int) -> tuple[float, ...
 
 def effects_from_args(args: argparse.Namespace) -> tuple[CameraEffects, ImuEffects]:
     """The --camera bundle with each individual option applied over it."""
-    from datasets.synth.camera_model import CameraEffects, realistic_camera
-    from datasets.synth.imu_sim import ImuEffects, realistic_imu
+    from datasets.synth.camera_model import rig_effects
 
-    realistic = args.camera == "realistic"
-    cam = realistic_camera() if realistic else CameraEffects()
-    imu = realistic_imu() if realistic else ImuEffects()
+    cam, imu = rig_effects(args.camera)
     cam_changes: dict[str, object] = {}
     if args.exposure is not None:
         cam_changes["exposure_s"] = args.exposure * 1e-3
@@ -212,6 +209,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    from datasets.synth.camera_model import CAMERA_BUNDLES
+
     p = subparsers.add_parser(
         "synth",
         help="render a synthetic stereo+IMU sequence with exact ground truth",
@@ -245,9 +244,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--mesh", metavar="FILE.ply", type=Path, help="also write the scene mesh")
     g = p.add_argument_group("camera and rig effects (see above)")
-    g.add_argument(
-        "--camera", choices=("clean", "realistic"), default="clean", help="effects bundle"
-    )
+    g.add_argument("--camera", choices=CAMERA_BUNDLES, default="clean", help="effects bundle")
     g.add_argument("--exposure", type=float, metavar="MS", help="fixed exposure (motion blur)")
     g.add_argument("--auto-exposure", action="store_true", help="auto-exposure with gain steps")
     g.add_argument("--illumination", type=float, metavar="A", help="illumination log amplitude")

@@ -29,11 +29,15 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from slam.core.calibration import CameraIntrinsics
 from slam.core.errors import InputError
+
+if TYPE_CHECKING:
+    from datasets.synth.imu_sim import ImuEffects
 
 
 @dataclass(frozen=True)
@@ -111,6 +115,21 @@ def realistic_camera() -> CameraEffects:
         read_noise_std=1.2,
         shot_noise_gl=1.0 / 40.0,
     )
+
+
+CAMERA_BUNDLES = ("clean", "realistic")
+
+
+def rig_effects(bundle: str) -> tuple[CameraEffects, ImuEffects]:
+    """The camera and IMU effects of a ``slam synth --camera`` bundle: ``clean`` (none) or
+    ``realistic`` (:func:`realistic_camera` and :func:`datasets.synth.imu_sim.realistic_imu`)."""
+    from datasets.synth.imu_sim import ImuEffects, realistic_imu
+
+    if bundle == "clean":
+        return CameraEffects(), ImuEffects()
+    if bundle == "realistic":
+        return realistic_camera(), realistic_imu()
+    raise InputError(f"camera bundle must be one of {', '.join(CAMERA_BUNDLES)}, got {bundle!r}")
 
 
 @dataclass(frozen=True, eq=False)
