@@ -401,10 +401,15 @@ def global_bundle_adjustment(
         for c in cams
     ]
     body_p_cam = [gtsam.Pose3(m) for m in body_from_cam]
-    noise_px = gtsam.noiseModel.Robust.Create(
-        gtsam.noiseModel.mEstimator.Huber.Create(p.huber_k),
-        gtsam.noiseModel.Isotropic.Sigma(2, p.pixel_sigma_px),
-    )
+
+    def pixel_noise(sigma_px: float) -> gtsam.noiseModel.Base:
+        """An observation's noise: isotropic ``sigma_px`` behind the Huber kernel."""
+        return gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Huber.Create(p.huber_k),
+            gtsam.noiseModel.Isotropic.Sigma(2, sigma_px),
+        )
+
+    noise_px = pixel_noise(p.pixel_sigma_px)
     has_right = np.all(np.isfinite(right), axis=1) & (len(cams) > 1)
     kf_index = np.searchsorted(np.asarray(kf_ids), kf_of)  # row -> position in kf_ids
     pose_key_of_row = np.array([_pose_key(k) for k in kf_ids], dtype=np.uint64)[kf_index].tolist()
@@ -506,10 +511,7 @@ def global_bundle_adjustment(
             # The kept observations of keyframes noisier than the round's: their factors again,
             # with the grown sigma.
             noise_of = {
-                f: gtsam.noiseModel.Robust.Create(
-                    gtsam.noiseModel.mEstimator.Huber.Create(p.huber_k),
-                    gtsam.noiseModel.Isotropic.Sigma(2, p.pixel_sigma_px * f),
-                )
+                f: pixel_noise(p.pixel_sigma_px * f)
                 for f in np.unique(reweigh[reweigh > 1.0]).tolist()
             }
             rows_of: dict[int, gtsam.noiseModel.Base] = {
