@@ -41,6 +41,21 @@ def ate_se3(seq_path: Path, trajectory: Path, from_t_ns: int | None = None) -> f
     return float(np.sqrt(np.mean(np.square(np.asarray(res.errors)[after]))))
 
 
+def scale_error_pct(seq_path: Path, trajectory: Path) -> float | None:
+    """|Sim(3) scale - 1| in % of one trajectory file against the sequence (None when it
+    cannot be aligned). Of the loop-closed trajectory it is the part of its ATE that no
+    reprojection can remove in a monocular map: the global adjustment holds the map's scale
+    only by the odometry edges (BENCHMARKS.md, mono18lc)."""
+    from slam.evaluation.evaluate import EvalOptions, load_pair, prepare
+
+    try:
+        ref, est = load_pair(seq_path, trajectory, EvalOptions())
+        scale = prepare(ref, est, EvalOptions(align="sim3")).alignment.scale
+    except SlamError:
+        return None
+    return 100.0 * abs(float(scale) - 1.0)
+
+
 def evaluate_run(seq_path: Path, run_dir: Path, artefacts: Path | None = None) -> dict[str, Any]:
     """Accuracy of a run against the sequence's ground truth (``eval_error`` when it has none).
 
@@ -86,6 +101,7 @@ def evaluate_run(seq_path: Path, run_dir: Path, artefacts: Path | None = None) -
     closed = run_dir / "trajectory_loop_closed.tum"
     if closed.exists():
         out["ate_loop_closed_m"] = ate_se3(seq_path, closed)
+        out["scale_error_loop_closed_pct"] = scale_error_pct(seq_path, closed)
     odometry = run_dir / "trajectory_odometry.tum"
     if odometry.exists():
         out["ate_odometry_m"] = ate_se3(seq_path, odometry)
@@ -202,6 +218,7 @@ COLUMNS = (
     ("ate_live_after_loop_m", "ATE live after 1st loop (m)", "{:.4f}"),
     ("ate_loop_closed_after_loop_m", "ATE loop-closed after 1st loop (m)", "{:.4f}"),
     ("scale_error_pct", "scale error (%)", "{:.2f}"),
+    ("scale_error_loop_closed_pct", "loop-closed scale error (%)", "{:.2f}"),
     ("rpe_1m_m", "RPE 1 m (m)", "{:.4f}"),
     ("rpe_10m_m", "RPE 10 m (m)", "{:.4f}"),
     ("drift_pct", "drift (%)", "{:.3f}"),
