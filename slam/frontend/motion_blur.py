@@ -53,10 +53,12 @@ def blur_vectors_px(
     cam_from_body_rotation: np.ndarray,
     intrinsics: CameraIntrinsics,
     pixels: np.ndarray,
+    normalised: np.ndarray | None = None,
 ) -> np.ndarray:
     """The streak (N, 2), px, each pixel (N, 2, distorted, as seen at mid-exposure) of a static
     scene is smeared over by a constant body rate over the exposure: its pixel at the exposure's
-    end minus its pixel at the start (rows of points that leave the front of the camera: 0)."""
+    end minus its pixel at the start (rows of points that leave the front of the camera: 0).
+    ``normalised``: the pixels' ``intrinsics.undistort_points``, where the caller has them."""
     px = np.asarray(pixels, dtype=float).reshape(-1, 2)
     if len(px) == 0 or exposure_s <= 0:
         return np.zeros((len(px), 2))
@@ -64,7 +66,8 @@ def blur_vectors_px(
     # cam(mid)_from_cam(end) = exp(w E/2): a point p (mid camera) is at R^T p at the end, R p at
     # the start
     mid_from_end = so3_exp(rate_cam * (0.5 * exposure_s))
-    rays = np.hstack([intrinsics.undistort_points(px), np.ones((len(px), 1))])
+    norm = intrinsics.undistort_points(px) if normalised is None else normalised
+    rays = np.hstack([norm, np.ones((len(px), 1))])
     end = rays @ mid_from_end  # rows: R^T p
     start = rays @ mid_from_end.T  # rows: R p
     front = (end[:, 2] > 1e-3) & (start[:, 2] > 1e-3)
@@ -80,9 +83,11 @@ def blur_length_px(
     cam_from_body_rotation: np.ndarray,
     intrinsics: CameraIntrinsics,
     pixels: np.ndarray,
+    normalised: np.ndarray | None = None,
 ) -> float:
     """One number for a frame: the median streak length (px) over ``pixels`` (its features),
-    or over a 3x3 grid of the image when there are none; 0 for no exposure."""
+    or over a 3x3 grid of the image when there are none; 0 for no exposure. ``normalised``:
+    the pixels' ``intrinsics.undistort_points``, where the caller has them."""
     px = np.asarray(pixels, dtype=float).reshape(-1, 2)
     if exposure_s <= 0:
         return 0.0
@@ -90,5 +95,8 @@ def blur_length_px(
         gx = (np.arange(3) + 0.5) * intrinsics.width / 3
         gy = (np.arange(3) + 0.5) * intrinsics.height / 3
         px = np.array([(x, y) for y in gy for x in gx])
-    vec = blur_vectors_px(rate_body_rad_s, exposure_s, cam_from_body_rotation, intrinsics, px)
+        normalised = None
+    vec = blur_vectors_px(
+        rate_body_rad_s, exposure_s, cam_from_body_rotation, intrinsics, px, normalised
+    )
     return float(np.median(np.linalg.norm(vec, axis=1)))
