@@ -48,7 +48,7 @@ from slam.frontend.features import (
     track_klt,
 )
 from slam.frontend.landmark_map import LandmarkMap, MapMatches, SearchParams
-from slam.frontend.motion_blur import angular_rate_rad_s, blur_length_px
+from slam.frontend.motion_blur import BlurBound, blur_length_px, rate_turn
 from slam.frontend.stereo import StereoMatcher
 from slam.imu_buffer import ImuBuffer, integrate_gyro, propagate_pose
 
@@ -176,6 +176,7 @@ class FrontEnd:
         self._keyframe_made: Keyframe | None = None
         self.blur_px = 0.0  # the current frame's predicted motion blur, px (motion_blur.py)
         self._px_normalised: np.ndarray | None = None  # _tracks_normalised, this frame's
+        self._blur_bound: BlurBound | None = None  # made at the first frame with an exposure
         self._cpu_start_s = 0.0  # thread CPU time and run-queue wait when track() started
         self._runqueue_start_ns: int | None = None
         self.gravity_m_s2 = calib.imu.gravity_m_s2 if calib.imu else 9.81
@@ -666,15 +667,30 @@ class FrontEnd:
 
     def _predicted_blur(self, frame: StereoFrame) -> float:
         """The frame's motion blur from the gyro and its exposure (``motion_blur``): the
-        median streak of the tracks (at their last pixels), px; 0 without exposure or IMU."""
+        median streak of the tracks (at their last pixels), px; 0 without exposure or IMU.
+        Where a bound of it from the gyro's turn alone (``motion_blur.BlurBound``) is at most
+        ``blur_pose_prior_min_px``, the bound: the blur itself is not needed then (half the
+        cost of the prediction, most frames of a slow sequence)."""
         if frame.exposure_ns <= 0 or self.imu is None:
             return 0.0
-        rate = angular_rate_rad_s(self.imu, frame.t_ns, frame.exposure_ns, self.bias_gyro)
-        if rate is None:
+        turn = rate_turn(self.imu, frame.t_ns, frame.exposure_ns, self.bias_gyro)
+        if turn is None:
             return 0.0
+        body0_from_body1, span_s = turn
+        exposure_s = frame.exposure_ns * 1e-9
+        if len(self.px):
+            if self._blur_bound is None:
+                self._blur_bound = BlurBound(self.cam0)
+            bound = self._blur_bound.length_px(
+                self._tracks_normalised(),
+                rotation_angle_rad(body0_from_body1) / span_s * exposure_s,
+            )
+            if bound <= self.cfg.blur_pose_prior_min_px:
+                return bound
+        rate = np.asarray(so3_log(body0_from_body1), dtype=float) / span_s
         return blur_length_px(
             rate,
-            frame.exposure_ns * 1e-9,
+            exposure_s,
             self.cam0_from_body[:3, :3],
             self.cam0,
             self.px,
