@@ -85,7 +85,7 @@ class BlurBound:
     ``L(a + |omega| E / 2) |omega| E``. Tabulated up to the image's widest ray plus
     ``MAX_BOUNDED_TURN_RAD``; beyond it (or a field of view past 75 degrees) the bound is inf."""
 
-    def __init__(self, intrinsics: CameraIntrinsics, bins: int = 64, azimuths: int = 180) -> None:
+    def __init__(self, intrinsics: CameraIntrinsics, bins: int = 32, azimuths: int = 72) -> None:
         w, h = intrinsics.width, intrinsics.height
         xs = np.linspace(0.0, w - 1.0, max(w // 4, 2))
         ys = np.linspace(0.0, h - 1.0, max(h // 4, 2))

@@ -166,6 +166,7 @@ class FrontEnd:
         self.next_keyframe_id = 0
         self.kf_t_ns = 0
         self.kf_px: dict[int, np.ndarray] = {}
+        self._kf_arrays: tuple[dict[int, np.ndarray], np.ndarray, np.ndarray] | None = None
         self.kf_num_landmarks = 0
         self.kf_poses: dict[int, np.ndarray] = {}
         self.applied_estimate: tuple[int, int] = (-1, -1)
@@ -176,7 +177,9 @@ class FrontEnd:
         self._keyframe_made: Keyframe | None = None
         self.blur_px = 0.0  # the current frame's predicted motion blur, px (motion_blur.py)
         self._px_normalised: np.ndarray | None = None  # _tracks_normalised, this frame's
-        self._blur_bound: BlurBound | None = None  # made at the first frame with an exposure
+        self._blur_bound = (
+            BlurBound(self.cam0) if cfg.blur_pose_prior_min_px > 0 and imu is not None else None
+        )  # _predicted_blur's; made here, not in a frame (~5 ms)
         self._cpu_start_s = 0.0  # thread CPU time and run-queue wait when track() started
         self._runqueue_start_ns: int | None = None
         self.gravity_m_s2 = calib.imu.gravity_m_s2 if calib.imu else 9.81
@@ -678,9 +681,7 @@ class FrontEnd:
             return 0.0
         body0_from_body1, span_s = turn
         exposure_s = frame.exposure_ns * 1e-9
-        if len(self.px):
-            if self._blur_bound is None:
-                self._blur_bound = BlurBound(self.cam0)
+        if len(self.px) and self._blur_bound is not None:
             bound = self._blur_bound.length_px(
                 self._tracks_normalised(),
                 rotation_angle_rad(body0_from_body1) / span_s * exposure_s,
@@ -710,9 +711,7 @@ class FrontEnd:
         since_s = (t_ns - self.kf_t_ns) * 1e-9
         if since_s >= cfg.keyframe_max_interval_s:
             return True
-        ids = self.ids.tolist()
-        in_kf = [i in self.kf_px for i in ids]
-        still = [self.kf_px[i] for i, seen in zip(ids, in_kf, strict=True) if seen]
+        in_kf, still = self._at_keyframe()
         ratio = len(still) / max(self.kf_num_landmarks, 1)
         if since_s < cfg.keyframe_min_interval_s and ratio >= 0.5:
             return False  # fast motion must not make every frame a keyframe
@@ -720,12 +719,26 @@ class FrontEnd:
             return True
         if num_inliers < 3 * cfg.min_pnp_inliers:
             return True
-        if still:
-            now = self.px[in_kf]
-            parallax = float(np.median(np.linalg.norm(now - np.array(still), axis=1)))
+        if len(still):
+            parallax = float(np.median(np.linalg.norm(self.px[in_kf] - still, axis=1)))
             if parallax > cfg.keyframe_min_parallax_px:
                 return True
         return False
+
+    def _at_keyframe(self) -> tuple[np.ndarray, np.ndarray]:
+        """Which tracks (N,) are of the last keyframe's landmarks (``kf_px``), and their pixels
+        at the keyframe (M, 2), in the tracks' order. ``kf_px`` as sorted arrays, made once per
+        keyframe (a new dict each)."""
+        cached = self._kf_arrays
+        if cached is None or cached[0] is not self.kf_px:
+            kf_ids = np.fromiter(self.kf_px.keys(), np.int64, len(self.kf_px))
+            kf_px = np.array(list(self.kf_px.values()) or np.zeros((0, 2), np.float32))
+            order = np.argsort(kf_ids)
+            cached = self._kf_arrays = (self.kf_px, kf_ids[order], kf_px[order])
+        _, kf_ids, kf_px = cached
+        pos = np.minimum(np.searchsorted(kf_ids, self.ids), max(len(kf_ids) - 1, 0))
+        in_kf = kf_ids[pos] == self.ids if len(kf_ids) else np.zeros(len(self.ids), bool)
+        return in_kf, kf_px[pos[in_kf]]
 
     def _start_segment(
         self, frame: StereoFrame, pyr: np.ndarray, t_start: float
