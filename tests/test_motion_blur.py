@@ -135,6 +135,7 @@ def test_the_blur_bound_is_above_every_streak_and_within_2x_of_their_median(
         length = blur_length_px(rate, exposure_s, cam_from_body, intrinsics, px, norm)
         assert length == blur_length_px(rate, exposure_s, cam_from_body, intrinsics, px)
         assert length <= bound.length_px(norm, turn)
+        assert bound.lowest_px(turn) <= bound.length_px(norm, turn)
         ratios.append(length / bound.length_px(norm, turn))
     assert np.median(ratios) > 0.5
     assert bound.length_px(norm, 0.3) == np.inf  # beyond the largest bounded turn

@@ -129,6 +129,11 @@ class BlurBound:
         ring = rate.reshape(azimuths, 4 * bins + 1).max(axis=0)
         self.px_per_rad = 1.25 * np.maximum.accumulate(ring)[::4]
 
+    def lowest_px(self, turn_rad: float) -> float:
+        """The smallest bound any pixel can have for a turn of ``turn_rad``: where it is above
+        a threshold, so is :meth:`length_px`."""
+        return float(self.px_per_rad[0]) * turn_rad
+
     def length_px(self, normalised: np.ndarray, turn_rad: float) -> float:
         """A bound of :func:`blur_length_px` (px) for pixels at ``normalised`` (N, 2, undistorted
         normalised coordinates, N > 0) and a turn of ``turn_rad`` (|omega| E) over the exposure."""

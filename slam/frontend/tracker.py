@@ -681,12 +681,12 @@ class FrontEnd:
             return 0.0
         body0_from_body1, span_s = turn
         exposure_s = frame.exposure_ns * 1e-9
-        if len(self.px) and self._blur_bound is not None:
-            bound = self._blur_bound.length_px(
-                self._tracks_normalised(),
-                rotation_angle_rad(body0_from_body1) / span_s * exposure_s,
-            )
-            if bound <= self.cfg.blur_pose_prior_min_px:
+        turn_rad = rotation_angle_rad(body0_from_body1) / span_s * exposure_s
+        bounds = self._blur_bound
+        min_px = self.cfg.blur_pose_prior_min_px
+        if len(self.px) and bounds is not None and bounds.lowest_px(turn_rad) <= min_px:
+            bound = bounds.length_px(self._tracks_normalised(), turn_rad)
+            if bound <= min_px:
                 return bound
         rate = np.asarray(so3_log(body0_from_body1), dtype=float) / span_s
         return blur_length_px(
