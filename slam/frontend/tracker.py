@@ -166,7 +166,6 @@ class FrontEnd:
         self.next_keyframe_id = 0
         self.kf_t_ns = 0
         self.kf_px: dict[int, np.ndarray] = {}
-        self._kf_arrays: tuple[dict[int, np.ndarray], np.ndarray, np.ndarray] | None = None
         self.kf_num_landmarks = 0
         self.kf_poses: dict[int, np.ndarray] = {}
         self.applied_estimate: tuple[int, int] = (-1, -1)
@@ -711,7 +710,9 @@ class FrontEnd:
         since_s = (t_ns - self.kf_t_ns) * 1e-9
         if since_s >= cfg.keyframe_max_interval_s:
             return True
-        in_kf, still = self._at_keyframe()
+        ids = self.ids.tolist()
+        in_kf = [i in self.kf_px for i in ids]
+        still = [self.kf_px[i] for i, seen in zip(ids, in_kf, strict=True) if seen]
         ratio = len(still) / max(self.kf_num_landmarks, 1)
         if since_s < cfg.keyframe_min_interval_s and ratio >= 0.5:
             return False  # fast motion must not make every frame a keyframe
@@ -719,26 +720,11 @@ class FrontEnd:
             return True
         if num_inliers < 3 * cfg.min_pnp_inliers:
             return True
-        if len(still):
-            parallax = float(np.median(np.linalg.norm(self.px[in_kf] - still, axis=1)))
+        if still:
+            parallax = float(np.median(np.linalg.norm(self.px[in_kf] - np.array(still), axis=1)))
             if parallax > cfg.keyframe_min_parallax_px:
                 return True
         return False
-
-    def _at_keyframe(self) -> tuple[np.ndarray, np.ndarray]:
-        """Which tracks (N,) are of the last keyframe's landmarks (``kf_px``), and their pixels
-        at the keyframe (M, 2), in the tracks' order. ``kf_px`` as sorted arrays, made once per
-        keyframe (a new dict each)."""
-        cached = self._kf_arrays
-        if cached is None or cached[0] is not self.kf_px:
-            kf_ids = np.fromiter(self.kf_px.keys(), np.int64, len(self.kf_px))
-            kf_px = np.array(list(self.kf_px.values()) or np.zeros((0, 2), np.float32))
-            order = np.argsort(kf_ids)
-            cached = self._kf_arrays = (self.kf_px, kf_ids[order], kf_px[order])
-        _, kf_ids, kf_px = cached
-        pos = np.minimum(np.searchsorted(kf_ids, self.ids), max(len(kf_ids) - 1, 0))
-        in_kf = kf_ids[pos] == self.ids if len(kf_ids) else np.zeros(len(self.ids), bool)
-        return in_kf, kf_px[pos[in_kf]]
 
     def _start_segment(
         self, frame: StereoFrame, pyr: np.ndarray, t_start: float
