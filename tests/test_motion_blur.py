@@ -10,9 +10,15 @@ import pytest
 from datasets.rigs import euroc_like_calibration
 from datasets.synth.imu_sim import exact_imu
 from datasets.synth.trajectories import ProfileMotion, SinusoidChannel, TimeWarp
+from slam.core.calibration import CameraIntrinsics
 from slam.core.geometry import invert_transform, transform_points
 from slam.core.messages import ImuSample
-from slam.frontend.motion_blur import angular_rate_rad_s, blur_length_px, blur_vectors_px
+from slam.frontend.motion_blur import (
+    BlurBound,
+    angular_rate_rad_s,
+    blur_length_px,
+    blur_vectors_px,
+)
 from slam.imu_buffer import ImuBuffer
 
 # a camera swinging about all three axes (up to ~3 rad/s, as room-aggressive), moving too
@@ -92,6 +98,52 @@ def test_blur_is_focal_length_times_rate_times_exposure_and_zero_without_exposur
     # about the optical axis the centre stays sharp
     roll = cam_from_body.T @ np.array([0.0, 0.0, 3.0])
     assert np.linalg.norm(blur_vectors_px(roll, 0.01, cam_from_body, k, centre)) < 1e-6
+
+
+@pytest.mark.parametrize(
+    "intrinsics",
+    [
+        euroc_like_calibration().cam0.intrinsics,
+        CameraIntrinsics(640, 480, 400.0, 410.0, 330.0, 235.0),
+        CameraIntrinsics(
+            640, 480, 460.0, 460.0, 320.0, 240.0, "equidistant", (-0.01, 0.02, -0.01, 0.002)
+        ),
+    ],
+    ids=["radtan", "pinhole", "equidistant"],
+)
+def test_the_blur_bound_is_above_every_streak_and_within_2x_of_their_median(
+    intrinsics: CameraIntrinsics,
+) -> None:
+    """``BlurBound``: for random rates (up to 10 rad/s), exposures and pixels all over the image,
+    each pixel's streak is at most its bound and the median streak (``blur_length_px``) at most
+    the bound of the median; the bound is not so loose as to be useless (median ratio > 0.5)."""
+    cam_from_body = invert_transform(euroc_like_calibration().cam0.body_from_cam)[:3, :3]
+    bound = BlurBound(intrinsics)
+    rng = np.random.default_rng(3)
+    ratios = []
+    for _ in range(300):
+        px = rng.uniform([0, 0], [intrinsics.width - 1, intrinsics.height - 1], (40, 2))
+        rate = rng.normal(size=3) * rng.uniform(0.05, 10.0) / np.sqrt(3)
+        exposure_s = rng.uniform(0.001, 0.02)
+        turn = float(np.linalg.norm(rate)) * exposure_s
+        norm = intrinsics.undistort_points(px)
+        streaks = np.linalg.norm(
+            blur_vectors_px(rate, exposure_s, cam_from_body, intrinsics, px), axis=1
+        )
+        for k in range(len(px)):
+            assert streaks[k] <= bound.length_px(norm[k : k + 1], turn)
+        length = blur_length_px(rate, exposure_s, cam_from_body, intrinsics, px, norm)
+        assert length == blur_length_px(rate, exposure_s, cam_from_body, intrinsics, px)
+        assert length <= bound.length_px(norm, turn)
+        assert bound.lowest_px(turn) <= bound.length_px(norm, turn)
+        ratios.append(length / bound.length_px(norm, turn))
+    assert np.median(ratios) > 0.5
+    assert bound.length_px(norm, 0.3) == np.inf  # beyond the largest bounded turn
+
+
+def test_a_wide_fisheye_gets_no_blur_bound() -> None:
+    wide = CameraIntrinsics(640, 480, 200.0, 200.0, 320.0, 240.0, "equidistant", (0.0,) * 4)
+    assert BlurBound(wide).length_px(np.zeros((1, 2)), 0.01) == np.inf
 
 
 def test_a_blurred_frame_pose_leans_on_the_imu_prediction() -> None:
