@@ -167,6 +167,12 @@ class GlobalBaParams:
     imu_refit_scale_error: float = 0.001
     imu_refit_interval_s: float = 0.5
     imu_refit_prior_sigma: float = 0.01
+    imu_refit_max_std: float = 0.0007
+    """A sensor's fitted matrix is used only when the standard deviations of its three scale
+    factors are all below this (else that sensor stays as read); the tighter allowance
+    ``imu_refit_scale_error`` only when both sensors' are (else ``imu_scale_error`` again).
+    Where the motion does not excite an axis the fit is held near the identity by its prior
+    and can be wrong by more than the allowance."""
     imu_odometry_edges: bool = False
     """Keep the odometry edge between two keyframes an IMU factor joins (False: the IMU
     factor replaces it; the edge is the smoother's estimate from the same readings)."""
@@ -200,7 +206,10 @@ class GlobalBaResult:
     imu_factors: int = 0
     """Keyframe intervals joined by an IMU factor (0: no IMU readings given)."""
     imu_intrinsics: ImuIntrinsics | None = None
-    """The IMU correction matrices fitted after the first round (``imu_refit``), or None."""
+    """The IMU correction matrices used in the second round (``imu_refit``; a sensor whose
+    fit was not certain enough stays the identity), or None."""
+    imu_scale_std: tuple[float, float] = (0.0, 0.0)
+    """The fit's largest scale-factor standard deviation, gyro and accelerometer."""
 
     def summary(self) -> dict[str, float | int]:
         return {
@@ -231,6 +240,8 @@ class GlobalBaResult:
             ):
                 for axis, v in zip("xyz", np.diag(m).tolist(), strict=True):
                     out[f"imu_{name}_scale_{axis}"] = round(float(v), 6)
+            out["imu_gyro_scale_std"] = round(self.imu_scale_std[0], 6)
+            out["imu_accel_scale_std"] = round(self.imu_scale_std[1], 6)
         return out
 
 
@@ -551,6 +562,7 @@ def global_bundle_adjustment(
     factor_r[mask_r] = add_projections(full, np.flatnonzero(mask_r), 1)
     factor_imu = np.zeros(0, dtype=np.int64)
     fitted: ImuIntrinsics | None = None
+    scale_std = (0.0, 0.0)
     if links:
         assert inertial is not None and imu is not None
         first = int(full.size())
@@ -584,7 +596,9 @@ def global_bundle_adjustment(
         refit = None
         if round_ == 0 and links and p.imu_refit and not time_boxed:
             assert inertial is not None and imu is not None
-            refit = _fit_imu_intrinsics(kf_ids, links, inertial, result, imu, p)
+            found = _fit_imu_intrinsics(kf_ids, links, inertial, result, imu, p)
+            if found is not None:
+                refit, scale_std = found
         if time_boxed or (not len(dropped) and reweigh is None and refit is None):
             break
         for i in dropped.tolist():
@@ -592,11 +606,13 @@ def global_bundle_adjustment(
         if refit is not None:
             assert inertial is not None and imu is not None
             fitted = refit
+            certain = max(scale_std) < p.imu_refit_max_std
+            refit_error = p.imu_refit_scale_error if certain else p.imu_scale_error
             for i in factor_imu.tolist():
                 full.remove(i)
             first = int(full.size())
             for a, b in links:
-                full.add(_imu_factor(a, b, inertial, result, imu, p.imu_refit_scale_error, refit))
+                full.add(_imu_factor(a, b, inertial, result, imu, refit_error, refit))
             factor_imu = first + np.arange(len(links))
         if reweigh is not None:
             # The kept observations of keyframes noisier than the round's: their factors again,
@@ -632,6 +648,7 @@ def global_bundle_adjustment(
         outlier_limit_px=p.outlier_px if outlier_limit is None else outlier_limit,
         imu_factors=len(links),
         imu_intrinsics=fitted,
+        imu_scale_std=scale_std,
     )
 
 
@@ -697,9 +714,11 @@ def _fit_imu_intrinsics(
     values: gtsam.Values,
     imu: ImuCalibration,
     p: GlobalBaParams,
-) -> ImuIntrinsics | None:
+) -> tuple[ImuIntrinsics, tuple[float, float]] | None:
     """The IMU's correction matrices fitted to the adjusted keyframes (``values``) and the raw
-    readings between them over the whole run; None when the fit has too few intervals."""
+    readings between them over the whole run (a sensor whose scale factors are less certain
+    than ``imu_refit_max_std`` left at the identity), with the fit's largest scale standard
+    deviation per sensor (gyro, accelerometer); None when the fit has too few intervals."""
     prev_of = dict((b, a) for a, b in links)
     states: list[KeyframeState] = []
     previous = -1
@@ -733,7 +752,14 @@ def _fit_imu_intrinsics(
     )
     if fit is None:
         return None
-    return ImuIntrinsics(fit.gyro_matrix, fit.accel_matrix)
+    std = (float(np.diag(fit.gyro_std).max()), float(np.diag(fit.accel_std).max()))
+    return (
+        ImuIntrinsics(
+            fit.gyro_matrix if std[0] < p.imu_refit_max_std else np.eye(3),
+            fit.accel_matrix if std[1] < p.imu_refit_max_std else np.eye(3),
+        ),
+        std,
+    )
 
 
 def _keyframe_sigma_factors(
