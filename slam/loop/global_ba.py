@@ -565,10 +565,10 @@ def global_bundle_adjustment(
     scale_std = (0.0, 0.0)
     if links:
         assert inertial is not None and imu is not None
-        first = int(full.size())
+        imu_first = int(full.size())
         for a, b in links:
             full.add(_imu_factor(a, b, inertial, values, imu, p.imu_scale_error, None))
-        factor_imu = first + np.arange(len(links))
+        factor_imu = imu_first + np.arange(len(links))
     for round_ in range(2):  # solve; drop outliers; solve again
         if deadline is not None and iteration_s is not None:
             if time.perf_counter() + iteration_s > deadline:
@@ -610,10 +610,10 @@ def global_bundle_adjustment(
             refit_error = p.imu_refit_scale_error if certain else p.imu_scale_error
             for i in factor_imu.tolist():
                 full.remove(i)
-            first = int(full.size())
+            imu_first = int(full.size())
             for a, b in links:
                 full.add(_imu_factor(a, b, inertial, result, imu, refit_error, refit))
-            factor_imu = first + np.arange(len(links))
+            factor_imu = imu_first + np.arange(len(links))
         if reweigh is not None:
             # The kept observations of keyframes noisier than the round's: their factors again,
             # with the grown sigma.
