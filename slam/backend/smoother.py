@@ -65,7 +65,7 @@ from slam.backend.time_offset import OnlineTimeOffset
 from slam.core.calibration import Calibration
 from slam.core.errors import SlamError
 from slam.core.geometry import invert_transform, scale_body_pose
-from slam.core.messages import Estimate, ImuSample, Keyframe
+from slam.core.messages import Estimate, ImuSample, Keyframe, KeyframeInertial
 
 log = logging.getLogger(__name__)
 
@@ -98,8 +98,10 @@ class _State:
     keyframe_id: int
     t_ns: int
     world_from_body_vo: np.ndarray | None
-    # the raw IMU pieces from the previous state (the IMU intrinsics' fit; None: not kept)
+    # the raw IMU pieces from the previous state (the IMU intrinsics' fit, the published
+    # ``KeyframeInertial``; None: not kept)
     raw_pieces: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    previous_keyframe_id: int = -1  # the state before it, joined by ``raw_pieces``
 
 
 @dataclass
@@ -168,7 +170,15 @@ class BackendStats:
 class VioBackend:
     """Stereo-inertial fixed-lag smoother with initialisation and failure recovery."""
 
-    def __init__(self, calibration: Calibration, config: BackendConfig | None = None) -> None:
+    def __init__(
+        self,
+        calibration: Calibration,
+        config: BackendConfig | None = None,
+        publish_inertial: bool = False,
+    ) -> None:
+        """``publish_inertial``: keep every keyframe state's raw IMU readings from the one
+        before it and hand each state, once final, to :meth:`take_inertial` (the loop
+        closer's IMU factors, ``loop.global_ba_imu``)."""
         if calibration.imu is None:
             raise SlamError("the visual-inertial back end needs an IMU calibration; use stereo-vo")
         self.calibration = calibration
@@ -236,6 +246,8 @@ class VioBackend:
         )
         self._held: list[Keyframe] = []  # waiting for the time offset
         self._held_s = 0.0
+        self.publish_inertial = publish_inertial
+        self._inertial: list[KeyframeInertial] = []  # final states not yet taken
 
     # --- public API ------------------------------------------------------------------------------
     @property
@@ -286,6 +298,30 @@ class VioBackend:
         self.stats.update_cpu_s.append(time.thread_time() - cpu_start)
         self.stats.factor_counts.append(self.n_factors())
         return est
+
+    def take_inertial(self, window: bool = False) -> tuple[KeyframeInertial, ...]:
+        """The keyframe states the smoother let go since the last call (their last estimate and
+        raw IMU readings from the state before; ``publish_inertial``), and with ``window``
+        also those still in the window (the end of the run)."""
+        out, self._inertial = self._inertial, []
+        if window and self.publish_inertial and self._states and self._initialized:
+            out += [self._inertial_of(s, self._values) for s in self._states]
+        return tuple(out)
+
+    def _inertial_of(self, s: _State, values: gtsam.Values) -> KeyframeInertial:
+        bias = values.atConstantBias(B(s.k))
+        pieces = s.raw_pieces
+        if pieces is None:
+            pieces = (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)))
+        return KeyframeInertial(
+            s.keyframe_id,
+            s.t_ns,
+            np.asarray(values.atVector(V(s.k)), float),
+            np.asarray(bias.gyroscope(), float),
+            np.asarray(bias.accelerometer(), float),
+            s.previous_keyframe_id if s.raw_pieces is not None else -1,
+            *pieces,
+        )
 
     def flush_held(self) -> Estimate | None:
         """Fuse the keyframes held for the time offset (the end of the input)."""
@@ -830,7 +866,7 @@ class VioBackend:
             cfg.imu_accel_density_factor,
         )
         raw_pieces = None
-        if self.intrinsics is not None and pim is not None:
+        if (self.intrinsics is not None or self.publish_inertial) and pim is not None:
             raw_pieces = integration_pieces(
                 *self.imu.raw_arrays(), prev.t_ns, kf.t_ns, cfg.imu_gap_max_s
             )
@@ -945,9 +981,17 @@ class VioBackend:
         self._landmarks |= new_landmark_ids
         self.stats.landmarks_inserted += len(new_landmark_ids)
         self.stats.observations_added += sum(1 for x in factor_lids if x >= 0)
-        self._states.append(_State(k, kf.keyframe_id, kf.t_ns, pose_vo, raw_pieces))
+        self._states.append(
+            _State(k, kf.keyframe_id, kf.t_ns, pose_vo, raw_pieces, prev.keyframe_id)
+        )
         if self.intrinsics is not None:
             self._fit_intrinsics(vals, values)
+        if self.publish_inertial:
+            self._inertial += [
+                self._inertial_of(st, vals)
+                for st in self._states
+                if not values.exists(X(st.k)) and vals.exists(X(st.k))
+            ]
         self._states = [s for s in self._states if values.exists(X(s.k))]
         self._landmarks = {lid for lid in self._landmarks if values.exists(L(lid))}
         self._map_alive = {lid for lid in self._map_alive | new_map if values.exists(L(lid))}

@@ -271,6 +271,46 @@ class ImuBatch:
 
 
 @dataclass(frozen=True, eq=False)
+class KeyframeInertial:
+    """A keyframe's inertial state as the back end last estimated it, and the IMU readings
+    from the keyframe before it: the global adjustment's IMU factors (``slam.loop.global_ba``,
+    option ``loop.global_ba_imu``).
+
+    The readings are as read (no IMU intrinsics applied), as the integration pieces between
+    the two keyframe times (``slam.backend.imu.integration_pieces``: each piece's duration and
+    mean readings). Velocity and biases are in the back end's (odometry) world."""
+
+    keyframe_id: int
+    t_ns: int
+    velocity_world_m_s: np.ndarray  # (3,)
+    bias_gyro_rad_s: np.ndarray  # (3,)
+    bias_accel_m_s2: np.ndarray  # (3,)
+    previous_keyframe_id: int  # -1: not joined to the keyframe before it by IMU readings
+    piece_dt_s: np.ndarray  # (P,)
+    piece_gyro_rad_s: np.ndarray  # (P, 3)
+    piece_accel_m_s2: np.ndarray  # (P, 3)
+
+    def with_state(
+        self,
+        velocity_world_m_s: np.ndarray,
+        bias_gyro_rad_s: np.ndarray,
+        bias_accel_m_s2: np.ndarray,
+    ) -> KeyframeInertial:
+        """The same readings with a newer estimate of the state."""
+        return KeyframeInertial(
+            self.keyframe_id,
+            self.t_ns,
+            np.asarray(velocity_world_m_s, dtype=float),
+            np.asarray(bias_gyro_rad_s, dtype=float),
+            np.asarray(bias_accel_m_s2, dtype=float),
+            self.previous_keyframe_id,
+            self.piece_dt_s,
+            self.piece_gyro_rad_s,
+            self.piece_accel_m_s2,
+        )
+
+
+@dataclass(frozen=True, eq=False)
 class BackendOutput:
     """What the back end returns per keyframe: the new estimate and what it cost."""
 
@@ -281,6 +321,10 @@ class BackendOutput:
     mono_scale: float = 0.0
     """Monocular: the start's scale (metres per VO unit) the alignment tried at this
     keyframe, accepted or not; 0 when none was tried."""
+    inertial: tuple[KeyframeInertial, ...] = ()
+    """Keyframe states the smoother let go with this update (and at the end, those left in
+    its window), for the global adjustment's IMU factors (``loop.global_ba_imu``; else
+    empty)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -388,6 +432,9 @@ class LoopEnd:
 
     unsmoothed_ids: frozenset[int]  # before the back end's initialisation: left out of it
     refreshed: dict[int, np.ndarray]  # keyframe id -> last odometry world_from_body
+    inertial: dict[int, KeyframeInertial] = field(default_factory=dict)
+    """Keyframe id -> the back end's final inertial state and IMU readings (the global
+    adjustment's IMU factors, ``loop.global_ba_imu``; else empty)."""
 
 
 @dataclass(frozen=True, eq=False)

@@ -41,7 +41,7 @@ from slam.core.geometry import (
     so3_exp_batch,
     so3_log,
 )
-from slam.core.messages import Keyframe, LoopCorrection
+from slam.core.messages import Keyframe, KeyframeInertial, LoopCorrection
 from slam.loop.config import LoopClosureConfig
 from slam.loop.database import LoopDetector, LoopDetectorParams
 from slam.loop.global_ba import (
@@ -345,6 +345,9 @@ class LoopCloser:
         self._odometry_edge_cache: dict[int, tuple[np.ndarray, np.ndarray, PoseEdge]] = {}
         """Per keyframe: its edge from the previous one, with the two poses it was made from
         (held here, so an identity test tells whether either was replaced)."""
+        self.inertial: dict[int, KeyframeInertial] = {}
+        """Keyframe id -> the back end's final inertial state, in its odometry world (set by
+        the stage at the end with ``global_ba_imu``): the global adjustment's IMU factors."""
         self.exclude_from_adjustment: set[int] = set()
         """Keyframes left out of the global adjustment (set by the stage at the end: those the
         back end never smoothed, i.e. from before its initialisation)."""
@@ -915,6 +918,19 @@ class LoopCloser:
         cpu = self.stats.add_cpu("fusion", cpu)
         if budget_s is not None:
             budget_s = max(budget_s - fusion_s, 0.0)
+        inertial = None
+        if c.global_ba_imu and self.inertial and self.calib.imu is not None:
+            # velocities into the corrected frame: each keyframe's correction's rotation
+            inertial = {
+                k: s.with_state(
+                    (self.corrected_pose(k)[:3, :3] @ self.odom[k][:3, :3].T)
+                    @ s.velocity_world_m_s,
+                    s.bias_gyro_rad_s,
+                    s.bias_accel_m_s2,
+                )
+                for k, s in self.inertial.items()
+                if k in node_set and k in self.odom
+            }
         result = global_bundle_adjustment(
             self.calib,
             self.observations,
@@ -933,6 +949,8 @@ class LoopCloser:
                 thin_by=c.global_ba_thin_by,
                 max_observations_per_landmark=c.global_ba_max_observations_per_landmark,
             ),
+            inertial=inertial,
+            imu=self.calib.imu,
         )
         self.stats.add_cpu("adjustment", cpu)
         if result is None:

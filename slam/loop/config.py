@@ -198,6 +198,14 @@ class LoopClosureConfig:
     the hall) into the adjusted map. Sequential loop-closed mm for 0.3 / 0.7 / 1.0: hall 5.25 /
     4.26 / 4.04, room-loop 1.29 / 1.01 / 0.98, room-aggressive 1.75 / 1.81 / 1.88,
     room-figure8 2.02 / 1.93 / 1.99 (BENCHMARKS.md)."""
+    global_ba_imu: bool = False
+    """IMU factors in the global adjustment (visual-inertial full adjustment, as ORB-SLAM3's):
+    the back end hands over each keyframe's final velocity and biases and the raw IMU readings
+    from the keyframe before it; consecutive keyframes are joined by a ``CombinedImuFactor``
+    in place of their odometry edge, and after the first round the IMU's scale and axis
+    misalignment are fitted to the adjusted keyframes over the whole run and the readings
+    re-integrated through them for the second (``slam.loop.global_ba``). Visual-inertial
+    presets only; BENCHMARKS.md ("gaimu17")."""
     global_ba_fusion: bool = True
     """Before the global adjustment, match every keyframe landmark to landmark against the
     keyframes of *other passes* near its corrected pose (ORB-SLAM's loop fusion), so the

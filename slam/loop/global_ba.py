@@ -27,19 +27,30 @@ the data handling is numpy.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
 import gtsam
 import numpy as np
 
-from slam.core.calibration import Calibration
+from slam.backend.imu import integrate_pieces, make_bias, preintegration_params, scale_error_params
+from slam.backend.imu_intrinsics import KeyframeState, fit_intrinsics
+from slam.core.calibration import Calibration, ImuCalibration
+from slam.core.messages import ImuIntrinsics, KeyframeInertial
 from slam.posegraph import PoseEdge, gaussian_from_g2o_information
 
 
 def _pose_key(kf_id: int) -> int:
     return int(gtsam.symbol("x", kf_id))
+
+
+def _velocity_key(kf_id: int) -> int:
+    return int(gtsam.symbol("v", kf_id))
+
+
+def _bias_key(kf_id: int) -> int:
+    return int(gtsam.symbol("b", kf_id))
 
 
 def _point_key(index: int) -> int:
@@ -144,6 +155,30 @@ class GlobalBaParams:
     first ones may predate the back end's initialisation), or "fixed" (``fixed_id`` held)."""
     anchor_sigma_m: float = 1.0
     anchor_sigma_rad: float = 0.1
+    imu_scale_error: float = 0.005
+    """With IMU readings (``inertial``): the scale / axis error the IMU factors' noise allows
+    for in the first round (``slam.backend.imu.scale_error_params``, as the back end's
+    ``imu_gyro_scale_error`` / ``imu_accel_scale_error``)."""
+    imu_refit: bool = True
+    """After the first round, fit the IMU's correction matrices (scale, misalignment:
+    ``slam.backend.imu_intrinsics.fit_intrinsics``) to the round's keyframes over the whole
+    run, re-integrate the readings through them and solve the second round with
+    ``imu_refit_scale_error``."""
+    imu_refit_scale_error: float = 0.001
+    imu_refit_interval_s: float = 0.5
+    imu_refit_prior_sigma: float = 0.01
+    imu_refit_max_std: float = 0.0007
+    """A sensor's fitted matrix is used only when the standard deviations of its three scale
+    factors are all below this (else that sensor stays as read); the tighter allowance
+    ``imu_refit_scale_error`` only when both sensors' are (else ``imu_scale_error`` again).
+    Where the motion does not excite an axis the fit is held near the identity by its prior
+    and can be wrong by more than the allowance."""
+    imu_odometry_edges: bool = False
+    """Keep the odometry edge between two keyframes an IMU factor joins (False: the IMU
+    factor replaces it; the edge is the smoother's estimate from the same readings)."""
+    imu_bias_sigma_gyro_rad_s: float = 0.01
+    imu_bias_sigma_accel_m_s2: float = 0.1
+    """Weak priors on every bias state at the back end's estimate."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -168,6 +203,13 @@ class GlobalBaResult:
     """The time budget stopped the iterations before convergence."""
     outlier_limit_px: float = 0.0
     """The first round's outlier threshold (``GlobalBaParams.outlier_sigmas``)."""
+    imu_factors: int = 0
+    """Keyframe intervals joined by an IMU factor (0: no IMU readings given)."""
+    imu_intrinsics: ImuIntrinsics | None = None
+    """The IMU correction matrices used in the second round (``imu_refit``; a sensor whose
+    fit was not certain enough stays the identity), or None."""
+    imu_scale_std: tuple[float, float] = (0.0, 0.0)
+    """The fit's largest scale-factor standard deviation, gyro and accelerometer."""
 
     def summary(self) -> dict[str, float | int]:
         return {
@@ -185,7 +227,22 @@ class GlobalBaResult:
             "fusion_keyframes_searched": self.fusion_keyframes_searched,
             "time_boxed": self.time_boxed,
             "outlier_limit_px": round(self.outlier_limit_px, 4),
-        }
+        } | self._imu_summary()
+
+    def _imu_summary(self) -> dict[str, float | int]:
+        if not self.imu_factors:
+            return {}
+        out: dict[str, float | int] = {"imu_factors": self.imu_factors}
+        if self.imu_intrinsics is not None:
+            for name, m in (
+                ("gyro", self.imu_intrinsics.gyro_matrix),
+                ("accel", self.imu_intrinsics.accel_matrix),
+            ):
+                for axis, v in zip("xyz", np.diag(m).tolist(), strict=True):
+                    out[f"imu_{name}_scale_{axis}"] = round(float(v), 6)
+            out["imu_gyro_scale_std"] = round(self.imu_scale_std[0], 6)
+            out["imu_accel_scale_std"] = round(self.imu_scale_std[1], 6)
+        return out
 
 
 def _fuse(ids: np.ndarray, pairs: Iterable[tuple[int, int]]) -> np.ndarray:
@@ -267,12 +324,20 @@ def global_bundle_adjustment(
     fixed_id: int,
     keyframe_t_ns: dict[int, int],
     params: GlobalBaParams | None = None,
+    inertial: Mapping[int, KeyframeInertial] | None = None,
+    imu: ImuCalibration | None = None,
 ) -> GlobalBaResult | None:
     """Re-estimate the keyframes in ``world_from_body`` (initial guesses, e.g. after PGO) with
     every observation in ``observations``. ``fused_pairs``: (keyframe a, landmark a, keyframe b,
     landmark b) that a loop matched (the landmark of one keyframe is the other's);
     ``keyframe_t_ns``: keyframe times (for ``max_track_s``). None when some keyframe has
-    fewer than ``min_observations`` usable observations."""
+    fewer than ``min_observations`` usable observations.
+
+    ``inertial`` (with the IMU's calibration ``imu``): per keyframe its velocity and biases
+    (initial values; velocity in the frame of ``world_from_body``, z up) and the IMU readings
+    from the keyframe before it: consecutive keyframes both adjusted are joined by a
+    ``CombinedImuFactor`` (visual-inertial full adjustment, as ORB-SLAM3's), which replaces
+    their odometry edge (``imu_odometry_edges``)."""
     p = params or GlobalBaParams()
     t0 = time.perf_counter()
     kf_ids = sorted(k for k in world_from_body if k in observations)
@@ -379,8 +444,12 @@ def global_bundle_adjustment(
                 )
             )
     kf_set = set(kf_ids)
+    links = _imu_links(kf_ids, inertial) if inertial is not None and imu is not None else []
+    linked = set(links)
     if p.odometry_sigma_scale > 0:
         for e in odometry_edges:
+            if (e.from_id, e.to_id) in linked and not p.imu_odometry_edges:
+                continue
             if e.from_id in kf_set and e.to_id in kf_set:
                 info = e.information / p.odometry_sigma_scale**2
                 noise: gtsam.noiseModel.Base = gaussian_from_g2o_information(info)
@@ -396,6 +465,18 @@ def global_bundle_adjustment(
                         noise,
                     )
                 )
+    imu_keyframes = sorted({k for link in links for k in link})
+    if links:
+        assert inertial is not None and imu is not None
+        bias_prior = gtsam.noiseModel.Diagonal.Sigmas(
+            np.array([p.imu_bias_sigma_accel_m_s2] * 3 + [p.imu_bias_sigma_gyro_rad_s] * 3)
+        )
+        for k in imu_keyframes:
+            st = inertial[k]
+            bias = make_bias(st.bias_gyro_rad_s, st.bias_accel_m_s2)
+            values.insert(_velocity_key(k), np.asarray(st.velocity_world_m_s, dtype=float))
+            values.insert(_bias_key(k), bias)
+            graph.add(gtsam.PriorFactorConstantBias(_bias_key(k), bias, bias_prior))
     cal = [
         gtsam.Cal3_S2(c.intrinsics.fx, c.intrinsics.fy, 0.0, c.intrinsics.cx, c.intrinsics.cy)
         for c in cams
@@ -479,6 +560,15 @@ def global_bundle_adjustment(
     factor_r = np.full(len(lid), -1)
     factor_l[mask_l] = add_projections(full, np.flatnonzero(mask_l), 0)
     factor_r[mask_r] = add_projections(full, np.flatnonzero(mask_r), 1)
+    factor_imu = np.zeros(0, dtype=np.int64)
+    fitted: ImuIntrinsics | None = None
+    scale_std = (0.0, 0.0)
+    if links:
+        assert inertial is not None and imu is not None
+        imu_first = int(full.size())
+        for a, b in links:
+            full.add(_imu_factor(a, b, inertial, values, imu, p.imu_scale_error, None))
+        factor_imu = imu_first + np.arange(len(links))
     for round_ in range(2):  # solve; drop outliers; solve again
         if deadline is not None and iteration_s is not None:
             if time.perf_counter() + iteration_s > deadline:
@@ -503,10 +593,27 @@ def global_bundle_adjustment(
             if round_ == 0 and p.keyframe_sigma_max > 1.0
             else None
         )
-        if time_boxed or (not len(dropped) and reweigh is None):
+        refit = None
+        if round_ == 0 and links and p.imu_refit and not time_boxed:
+            assert inertial is not None and imu is not None
+            found = _fit_imu_intrinsics(kf_ids, links, inertial, result, imu, p)
+            if found is not None:
+                refit, scale_std = found
+        if time_boxed or (not len(dropped) and reweigh is None and refit is None):
             break
         for i in dropped.tolist():
             full.remove(i)
+        if refit is not None:
+            assert inertial is not None and imu is not None
+            fitted = refit
+            certain = max(scale_std) < p.imu_refit_max_std
+            refit_error = p.imu_refit_scale_error if certain else p.imu_scale_error
+            for i in factor_imu.tolist():
+                full.remove(i)
+            imu_first = int(full.size())
+            for a, b in links:
+                full.add(_imu_factor(a, b, inertial, result, imu, refit_error, refit))
+            factor_imu = imu_first + np.arange(len(links))
         if reweigh is not None:
             # The kept observations of keyframes noisier than the round's: their factors again,
             # with the grown sigma.
@@ -539,6 +646,119 @@ def global_bundle_adjustment(
         seconds=time.perf_counter() - t0,
         time_boxed=time_boxed,
         outlier_limit_px=p.outlier_px if outlier_limit is None else outlier_limit,
+        imu_factors=len(links),
+        imu_intrinsics=fitted,
+        imu_scale_std=scale_std,
+    )
+
+
+def _imu_links(
+    kf_ids: Sequence[int], inertial: Mapping[int, KeyframeInertial]
+) -> list[tuple[int, int]]:
+    """(previous keyframe, keyframe) pairs among ``kf_ids`` joined by IMU readings."""
+    kf_set = set(kf_ids)
+    links = []
+    for k in kf_ids:
+        st = inertial.get(k)
+        if (
+            st is None
+            or st.previous_keyframe_id not in kf_set
+            or st.previous_keyframe_id not in inertial
+        ):
+            continue
+        if len(st.piece_dt_s) and float(np.sum(st.piece_dt_s)) > 0:
+            links.append((st.previous_keyframe_id, k))
+    return links
+
+
+def _imu_factor(
+    a: int,
+    b: int,
+    inertial: Mapping[int, KeyframeInertial],
+    values: gtsam.Values,
+    imu: ImuCalibration,
+    scale_error: float,
+    intrinsics: ImuIntrinsics | None,
+) -> gtsam.CombinedImuFactor:
+    """The IMU factor from keyframe ``a`` to ``b``: ``b``'s readings (through ``intrinsics``
+    when given) preintegrated about ``a``'s bias in ``values``, their noise allowing for
+    ``scale_error``."""
+    st = inertial[b]
+    gyro, accel = st.piece_gyro_rad_s, st.piece_accel_m_s2
+    if intrinsics is not None:
+        gyro = gyro @ intrinsics.gyro_matrix.T
+        accel = accel @ intrinsics.accel_matrix.T
+    pieces = (st.piece_dt_s, gyro, accel)
+    params = (
+        scale_error_params(imu, pieces, scale_error, scale_error)
+        if scale_error > 0
+        else preintegration_params(imu)
+    )
+    pim = gtsam.PreintegratedCombinedMeasurements(params, values.atConstantBias(_bias_key(a)))
+    integrate_pieces(pim, pieces)
+    return gtsam.CombinedImuFactor(
+        _pose_key(a),
+        _velocity_key(a),
+        _pose_key(b),
+        _velocity_key(b),
+        _bias_key(a),
+        _bias_key(b),
+        pim,
+    )
+
+
+def _fit_imu_intrinsics(
+    kf_ids: Sequence[int],
+    links: Sequence[tuple[int, int]],
+    inertial: Mapping[int, KeyframeInertial],
+    values: gtsam.Values,
+    imu: ImuCalibration,
+    p: GlobalBaParams,
+) -> tuple[ImuIntrinsics, tuple[float, float]] | None:
+    """The IMU's correction matrices fitted to the adjusted keyframes (``values``) and the raw
+    readings between them over the whole run (a sensor whose scale factors are less certain
+    than ``imu_refit_max_std`` left at the identity), with the fit's largest scale standard
+    deviation per sensor (gyro, accelerometer); None when the fit has too few intervals."""
+    prev_of = dict((b, a) for a, b in links)
+    states: list[KeyframeState] = []
+    previous = -1
+    for k in sorted(kf_ids, key=lambda k: inertial[k].t_ns if k in inertial else -1):
+        if k not in inertial or not values.exists(_velocity_key(k)):
+            previous = -1
+            continue
+        st = inertial[k]
+        pose = values.atPose3(_pose_key(k))
+        pieces = None
+        if prev_of.get(k) == previous and previous >= 0:
+            pieces = (st.piece_dt_s, st.piece_gyro_rad_s, st.piece_accel_m_s2)
+        states.append(
+            KeyframeState(
+                st.t_ns,
+                pose.rotation().matrix(),
+                np.asarray(pose.translation(), dtype=float),
+                np.asarray(values.atVector(_velocity_key(k)), dtype=float),
+                pieces,
+            )
+        )
+        previous = k
+    fit = fit_intrinsics(
+        states,
+        np.array([0.0, 0.0, -imu.gravity_m_s2]),
+        ImuIntrinsics.identity(),
+        p.imu_refit_prior_sigma,
+        True,
+        p.imu_refit_interval_s,
+        imu.accel_random_walk,
+    )
+    if fit is None:
+        return None
+    std = (float(np.diag(fit.gyro_std).max()), float(np.diag(fit.accel_std).max()))
+    return (
+        ImuIntrinsics(
+            fit.gyro_matrix if std[0] < p.imu_refit_max_std else np.eye(3),
+            fit.accel_matrix if std[1] < p.imu_refit_max_std else np.eye(3),
+        ),
+        std,
     )
 
 

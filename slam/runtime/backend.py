@@ -42,10 +42,10 @@ _NO_IMAGE = np.zeros((0, 0), np.uint8)  # a keyframe sent to the worker carries 
 class _Estimator(WorkerCore):
     """Wraps VioBackend: reports each keyframe's update and the estimator's state changes."""
 
-    def __init__(self, calib: Calibration, cfg: BackendConfig):
+    def __init__(self, calib: Calibration, cfg: BackendConfig, publish_inertial: bool = False):
         from slam.backend.smoother import VioBackend
 
-        self.backend = VioBackend(calib, cfg)
+        self.backend = VioBackend(calib, cfg, publish_inertial)
         self.was_initialized = False
         self.resets_seen = 0
 
@@ -73,7 +73,14 @@ class _Estimator(WorkerCore):
         if resets > self.resets_seen:
             events.append(f"back end reset ({resets} so far)")
             self.resets_seen = resets
-        return BackendOutput(est, kf.keyframe_id, update_ms, tuple(events), self.backend.last_scale)
+        return BackendOutput(
+            est,
+            kf.keyframe_id,
+            update_ms,
+            tuple(events),
+            self.backend.last_scale,
+            self.backend.take_inertial(),
+        )
 
     def handle(self, msg: Any) -> list[Any]:
         if isinstance(msg, ImuBatch):
@@ -83,7 +90,11 @@ class _Estimator(WorkerCore):
             return [self.add_keyframe(msg)]
         if isinstance(msg, BackendFlush):
             est = self.backend.flush_held()
-            return [] if est is None else [BackendOutput(est, est.keyframe_id, 0.0)]
+            out = [] if est is None else [BackendOutput(est, est.keyframe_id, 0.0)]
+            inertial = self.backend.take_inertial(window=True)
+            if inertial:  # the window's states, final now
+                out.append(BackendOutput(None, -1, 0.0, inertial=inertial))
+            return out
         return []
 
     def finish(self, interrupted: bool) -> BackendFinal:
@@ -110,8 +121,8 @@ class _Estimator(WorkerCore):
         return out
 
 
-def _make_core(calib: Calibration, cfg: BackendConfig) -> _Estimator:
-    return _Estimator(calib, cfg)
+def _make_core(calib: Calibration, cfg: BackendConfig, publish_inertial: bool) -> _Estimator:
+    return _Estimator(calib, cfg, publish_inertial)
 
 
 class BackendStage(ProcessStage):
@@ -124,13 +135,16 @@ class BackendStage(ProcessStage):
         latest: Latest,
         threaded: bool,
         use_process: bool,
+        publish_inertial: bool = False,
     ):
+        """``publish_inertial``: the outputs carry the back end's final keyframe states and
+        their IMU readings (``BackendOutput.inertial``: ``loop.global_ba_imu``)."""
         super().__init__(
             "backend",
             4000,
             threaded,
             _make_core,
-            (calib, cfg),
+            (calib, cfg, publish_inertial),
             role="backend",
             in_process=use_process,
         )
@@ -148,7 +162,8 @@ class BackendStage(ProcessStage):
         if not isinstance(item, BackendOutput):
             return
         with self._lock:
-            self.update_ms.append(item.update_ms)
+            if item.estimate is not None or item.keyframe_id >= 0:  # not the end's states alone
+                self.update_ms.append(item.update_ms)
             est = item.estimate
             if est is not None and est.initialized:
                 for kid, pose in est.keyframe_poses.items():

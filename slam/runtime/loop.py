@@ -32,6 +32,7 @@ from slam.core.messages import (
     BackendOutput,
     FrontendCorrection,
     Keyframe,
+    KeyframeInertial,
     LoopEnd,
     LoopFinal,
     LoopInput,
@@ -68,6 +69,7 @@ class LoopCore(WorkerCore):
                 if kid in closer.odom:
                     closer.update_odometry(kid, pose)
             closer.exclude_from_adjustment = set(msg.unsmoothed_ids)
+            closer.inertial = dict(msg.inertial)
             return []
         if not isinstance(msg, LoopInput):
             return []
@@ -243,11 +245,15 @@ class LoopClosureStage(ProcessStage):
         self.segment_of: dict[int, int] = {}
         self._final: LoopFinal | None = None
         self._events: list[tuple[str, str, int, int]] = []
+        # keyframe id -> the back end's final inertial state (``global_ba_imu``)
+        self.inertial: dict[int, KeyframeInertial] = {}
 
     # -- stage ---------------------------------------------------------------------------
     def process(self, msg: Any) -> None:
         if isinstance(msg, BackendOutput):
             self.odometry.backend_output(msg)
+            for state in msg.inertial:
+                self.inertial[state.keyframe_id] = state
             return
         if isinstance(msg, FrontendCorrection):
             self.odometry.frontend_correction(msg)
@@ -294,7 +300,11 @@ class LoopClosureStage(ProcessStage):
             unsmoothed = before_first_smoothed(kids, self.odometry.smoothed)
             # The back end's last estimates (and the front end's change of frame, when the
             # back end initialised after the last frame) arrived after the last keyframe.
-            self.send(LoopEnd(frozenset(unsmoothed), self.refresher.refreshed(full=True)))
+            self.send(
+                LoopEnd(
+                    frozenset(unsmoothed), self.refresher.refreshed(full=True), dict(self.inertial)
+                )
+            )
         self.end_worker()
 
     # -- outputs (complete once the stage has ended) ----------------------------------------

@@ -113,7 +113,12 @@ def build(seq: Sequence, cfg: SlamConfig, session: ViewerSession | None) -> Pipe
     p.loop, p.viewer = loop, viewer
     if with_imu:
         p.backend = BackendStage(
-            seq.calibration, cfg.backend, latest_estimate, threaded, cfg.backend_process
+            seq.calibration,
+            cfg.backend,
+            latest_estimate,
+            threaded,
+            cfg.backend_process,
+            publish_inertial=loop is not None and cfg.loop.global_ba and cfg.loop.global_ba_imu,
         )
         p.imu_consumers.append(p.backend)
     if cfg.mapping.enabled:
