@@ -216,7 +216,14 @@ class FrontendConfig:
     keyframe at least this often (beside the usual rules, ``keyframe_max_interval_s`` after):
     on slow motion keyframes come 0.25-0.5 s apart, so the alignment's
     ``backend.mono_init_keyframes`` arrive 3-4 s after the motion; denser, its window's
-    excitation (the alignment's own checks) decides when the start comes."""
+    excitation (the alignment's own checks) decides when the start comes. Denser keyframes
+    also give the short window a truer scale (V1_01's renders, against the truth: 0.2 s apart
+    -0.3 / -2.9 / -1.3 % at 2.1-2.2 s, main's sparse windows -1.8 / -8.1 / -9.1 % at 3.1-4.2 s;
+    the same with ground-truth poses: the IMU's intervals decide, not the VO). Off in the
+    preset: at 0.25 s V1_01 starts within 2.4-2.5 s, but its live / loop-closed error moved
+    x1.19 / x0.71 / x1.41 and x1.04 / x1.10 / x0.97 over three renders; at 0.2 s with
+    ``backend.mono_init_keyframes`` 12, V1_01 2.54 s, live x0.84-x1.14, loop-closed x0.87-x1.07,
+    but the hall's loop-closed +38 % (BENCHMARKS.md, mono18g)."""
     mono_min_angle_deg: float = bounded(1.0, gt=0, lt=90)
     """A candidate becomes a landmark once the rays of its first view and the current
     keyframe's differ by this angle."""
