@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from stereo_observations import observe
 
 from datasets.rigs import euroc_like_calibration
 from slam.core.geometry import invert_transform, make_transform, so3_exp
@@ -51,23 +52,13 @@ def loop_world():
     t_ns = {k: k * KF_DT_NS for k in range(len(true))}
     obs: dict[int, KeyframeObservations] = {}
     for k, pose in enumerate(true):
-        uvs, ok = [], np.ones(len(pts), bool)
-        for cam in cams:
-            pc = invert_transform(pose @ cam.body_from_cam)
-            x = pts @ pc[:3, :3].T + pc[:3, 3]
-            z = np.maximum(x[:, 2:3], 1e-9)
-            u = (x / z) @ cam.intrinsics.K.T
-            ok &= (x[:, 2] > 0.5) & (u[:, 0] >= 0) & (u[:, 1] >= 0)
-            ok &= (u[:, 0] < cam.intrinsics.width) & (u[:, 1] < cam.intrinsics.height)
-            uvs.append(u[:, :2] + rng.normal(0, 0.2, (len(pts), 2)))
-        j = np.flatnonzero(ok)
+        j, uv_left, uv_right, p_cam0 = observe(pose, cams, pts, 0.2, rng)
         track = k % NUM_KF // TRACK_KF  # after the lap, the same place gets new ids
-        c0 = invert_transform(pose @ cams[0].body_from_cam)
         obs[k] = KeyframeObservations(
             (j * 1000 + track + (500 if k >= NUM_KF else 0)).astype(np.int64),
-            uvs[0][j],
-            uvs[1][j],
-            pts[j] @ c0[:3, :3].T + c0[:3, 3] + rng.normal(0, 0.01, (len(j), 3)),
+            uv_left,
+            uv_right,
+            p_cam0,
         )
     # drifted odometry: yaw 0.03 deg and 3 mm per keyframe step accumulate
     odom = []

@@ -10,6 +10,7 @@ import pickle
 
 import numpy as np
 import pytest
+from stereo_observations import observe
 
 from datasets.rigs import euroc_like_calibration
 from datasets.synth.imu_sim import ImuEffects, simulate_imu
@@ -55,22 +56,12 @@ def imu_world(
     pts = centre + 4.0 * d / np.linalg.norm(d, axis=1, keepdims=True)
     obs: dict[int, KeyframeObservations] = {}
     for k, pose in enumerate(true):
-        uvs, ok = [], np.ones(len(pts), bool)
-        for cam in cams:
-            pc = invert_transform(pose @ cam.body_from_cam)
-            x = pts @ pc[:3, :3].T + pc[:3, 3]
-            z = np.maximum(x[:, 2:3], 1e-9)
-            u = (x / z) @ cam.intrinsics.K.T
-            ok &= (x[:, 2] > 0.5) & (u[:, 0] >= 0) & (u[:, 1] >= 0)
-            ok &= (u[:, 0] < cam.intrinsics.width) & (u[:, 1] < cam.intrinsics.height)
-            uvs.append(u[:, :2] + rng.normal(0, 0.3, (len(pts), 2)))
-        j = np.flatnonzero(ok)
-        c0 = invert_transform(pose @ cams[0].body_from_cam)
+        j, uv_left, uv_right, p_cam0 = observe(pose, cams, pts, 0.3, rng)
         obs[k] = KeyframeObservations(
             (j * 1000 + k // track_kf).astype(np.int64),
-            uvs[0][j],
-            uvs[1][j],
-            pts[j] @ c0[:3, :3].T + c0[:3, 3] + rng.normal(0, 0.01, (len(j), 3)),
+            uv_left,
+            uv_right,
+            p_cam0,
         )
     cfg = LoopClosureConfig()
     edges, odom = [], [true[0]]
