@@ -174,7 +174,9 @@ class FrontEnd:
         self._prior_cache: tuple[Estimate, int, np.ndarray, np.ndarray] | None = None
         self._keyframe_due: tuple[StereoFrame, np.ndarray] | None = None
         self._keyframe_made: Keyframe | None = None
-        self.blur_px = 0.0  # the current frame's predicted motion blur, px (motion_blur.py)
+        # the current frame's predicted motion blur, px (motion_blur.py); where it is at most
+        # blur_pose_prior_min_px, possibly an upper bound of it (_predicted_blur)
+        self.blur_px = 0.0
         self._px_normalised: np.ndarray | None = None  # _tracks_normalised, this frame's
         self._blur_bound = (
             BlurBound(self.cam0) if cfg.blur_pose_prior_min_px > 0 and imu is not None else None
