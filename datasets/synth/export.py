@@ -18,7 +18,7 @@ from tqdm import tqdm
 from datasets.ply import write_ply_mesh
 from datasets.synth.camera_model import CameraEffects
 from datasets.synth.generator import SyntheticSequence
-from datasets.synth.imu_check import GyroAgreement
+from datasets.synth.imu_check import AccelScale, GyroAgreement
 from datasets.synth.imu_sim import ImuEffects
 from slam.core.atomic import write_atomic
 from slam.core.errors import InputError
@@ -83,6 +83,7 @@ class SynthResult:
     depth_images: int = 0
     mesh_path: Path | None = None
     gyro_agreement: GyroAgreement | None = None  # with a real IMU (--imu-csv)
+    accel_scale: AccelScale | None = None  # with a real IMU (--imu-csv)
 
 
 def run_synth(
@@ -94,6 +95,7 @@ def run_synth(
     scene_seed: int = 0,
     trajectory_file: str | None = None,
     imu_csv: str | None = None,
+    imu_csv_on_trajectory: bool = False,
     imu_noise: bool = True,
     blackout: tuple[float, float] | None = None,
     moving_start: bool = False,
@@ -125,6 +127,7 @@ def run_synth(
         scene_seed=scene_seed,
         trajectory_file=trajectory_file,
         imu_csv=imu_csv,
+        imu_csv_on_trajectory=imu_csv_on_trajectory,
         gyro_bias0_rad_s=None if gyro_bias0_rad_s is None else np.asarray(gyro_bias0_rad_s),
         accel_bias0_m_s2=None if accel_bias0_m_s2 is None else np.asarray(accel_bias0_m_s2),
         camera=camera,
@@ -149,4 +152,5 @@ def run_synth(
         depth_images=n_depth,
         mesh_path=Path(mesh_path) if mesh_path is not None else None,
         gyro_agreement=seq.gyro_agreement,
+        accel_scale=seq.accel_scale,
     )

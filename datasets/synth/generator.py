@@ -27,7 +27,13 @@ from datasets.synth.camera_model import (
     sensor_image,
     vignetting_map,
 )
-from datasets.synth.imu_sim import ImuDistortion, ImuEffects, read_imu_csv, simulate_imu
+from datasets.synth.imu_sim import (
+    ImuDistortion,
+    ImuEffects,
+    read_imu_csv,
+    real_imu_errors_on_motion,
+    simulate_imu,
+)
 from datasets.synth.render import BAND_ROWS, StereoRenderer
 from datasets.synth.scene import Scene, build_scene, room_around_path
 from datasets.synth.trajectories import (
@@ -48,7 +54,7 @@ from slam.core.messages import StereoFrame, mid_exposure_ns
 from slam.core.trajectory import Trajectory
 
 if TYPE_CHECKING:
-    from datasets.synth.imu_check import GyroAgreement
+    from datasets.synth.imu_check import AccelScale, GyroAgreement
 
 PREFETCH_FRAMES = 2  # frames rendered ahead by iter_frames()
 ROLLING_SHUTTER_BAND_ROWS = 16  # rows rendered at one time with a rolling shutter
@@ -71,6 +77,7 @@ class SynthOptions:
     pixel_noise_std: float = 0.0  # grey levels, Gaussian
     trajectory_file: str | None = None
     imu_csv: str | None = None
+    imu_csv_on_trajectory: bool = False  # the trajectory's readings + the csv's errors
     camera: CameraEffects = CameraEffects()
     imu_effects: ImuEffects = ImuEffects()
     time_offset_ns: int = 0  # an image stamped t shows the scene at IMU time t + offset
@@ -125,6 +132,7 @@ class SyntheticSequence(Sequence):
             self.ground_truth = self._ground_truth_at_image_times(self.ground_truth)
         self._vignetting: list[np.ndarray] | None = None
         self.gyro_agreement: GyroAgreement | None = None  # a real IMU against the motion
+        self.accel_scale: AccelScale | None = None  # the same, its accelerometer
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
@@ -330,6 +338,7 @@ def make_synthetic_sequence(
     scene_seed: int = 0,
     trajectory_file: str | None = None,
     imu_csv: str | None = None,
+    imu_csv_on_trajectory: bool = False,
     imu_calibration: ImuCalibration | None = None,
     gyro_bias0_rad_s: np.ndarray | None = None,
     accel_bias0_m_s2: np.ndarray | None = None,
@@ -343,7 +352,9 @@ def make_synthetic_sequence(
     ``profile``: ``figure8``, ``loop``, ``aggressive`` or ``hall`` (see
     :func:`datasets.synth.trajectories.make_profile`); ignored when ``trajectory_file`` (TUM or
     EuRoC ground truth) is given. ``imu_csv``: a real EuRoC ``imu0/data.csv`` used instead of
-    the simulated IMU (it must share the trajectory file's clock). ``blackout``: (start_s,
+    the simulated IMU (it must share the trajectory file's clock); ``imu_csv_on_trajectory``:
+    the trajectory's exact readings plus that IMU's bias drift and noise instead
+    (:func:`~datasets.synth.imu_sim.real_imu_errors_on_motion`). ``blackout``: (start_s,
     duration_s) relative to the first frame, frames in it are black. ``seed`` drives the IMU
     and pixel noise; ``scene_seed`` the textures and box sizes.
 
@@ -366,6 +377,7 @@ def make_synthetic_sequence(
         pixel_noise_std=pixel_noise_std,
         trajectory_file=trajectory_file,
         imu_csv=imu_csv,
+        imu_csv_on_trajectory=imu_csv_on_trajectory,
         camera=camera or CameraEffects(),
         imu_effects=imu_effects or ImuEffects(),
         time_offset_ns=int(time_offset_ns),
@@ -381,6 +393,8 @@ def make_synthetic_sequence(
         )
     if imu_csv is not None and (options.imu_effects.active):
         raise InputError("IMU effects need the simulated IMU (not --imu-csv)")
+    if imu_csv_on_trajectory and imu_csv is None:
+        raise InputError("--imu-csv-on-trajectory needs --imu-csv (the IMU whose errors to keep)")
     if imu_csv is not None and trajectory_file is None:
         raise InputError("--imu-csv needs --from-trajectory (the IMU must match a trajectory)")
     calib = euroc_like_calibration(imu_calibration)
@@ -425,6 +439,8 @@ def make_synthetic_sequence(
                 f"{imu_csv}: no IMU samples within the trajectory's time span; "
                 "the IMU csv and the trajectory file must share one clock"
             )
+        if imu_csv_on_trajectory:
+            imu = real_imu_errors_on_motion(motion, imu, t0_ns, calib.imu, seed)
     else:
         sim = simulate_imu(
             motion,
@@ -464,10 +480,16 @@ def make_synthetic_sequence(
 def _check_real_imu(seq: SyntheticSequence, motion: Motion, imu: ImuArrays, t0_ns: int) -> None:
     """Warn when the real IMU's gyro and the trajectory the images follow disagree
     (:mod:`datasets.synth.imu_check`); the figure is kept in ``seq.gyro_agreement``."""
-    from datasets.synth.imu_check import MAX_MEDIAN_DISAGREEMENT_DEG, gyro_agreement
+    from datasets.synth.imu_check import (
+        MAX_MEDIAN_DISAGREEMENT_DEG,
+        accel_scale_agreement,
+        gyro_agreement,
+    )
 
     agreement = gyro_agreement(motion, imu, t0_ns)
     seq.gyro_agreement = agreement
+    assert seq.calibration.imu is not None
+    seq.accel_scale = accel_scale_agreement(motion, imu, t0_ns, seq.calibration.imu.gravity_m_s2)
     if agreement is not None and agreement.median_deg > MAX_MEDIAN_DISAGREEMENT_DEG:
         seq.warn(
             f"the IMU and the trajectory disagree: the gyro integrated over "

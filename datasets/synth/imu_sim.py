@@ -217,3 +217,60 @@ def read_imu_csv(path: str, t_from_ns: int | None = None, t_to_ns: int | None = 
     if t_to_ns is not None:
         keep &= t_ns <= t_to_ns
     return ImuArrays(t_ns=t_ns[keep], gyro_rad_s=vals[keep, :3], accel_m_s2=vals[keep, 3:6])
+
+
+REAL_BIAS_WINDOW_S = 10.0
+"""The real IMU's errors (real less the trajectory's exact readings) averaged over this window
+are its bias profile, kept by :func:`real_imu_errors_on_motion`."""
+REAL_NOISE_WINDOW_S = 0.2
+"""The errors less their average over this window (above ~5 Hz, where a 20 Hz trajectory has no
+motion) are its noise and vibration, kept too."""
+
+
+def _moving_average(values: np.ndarray, window: int) -> np.ndarray:
+    """Centred moving average along axis 0 over ``window`` samples, the edges averaged over
+    the samples there are (no padding)."""
+    if window <= 1:
+        return values.copy()
+    csum = np.concatenate([np.zeros((1,) + values.shape[1:]), np.cumsum(values, axis=0)])
+    n = len(values)
+    lo = np.clip(np.arange(n) - window // 2, 0, n)
+    hi = np.clip(np.arange(n) + (window - window // 2), 0, n)
+    return (csum[hi] - csum[lo]) / (hi - lo).reshape((-1,) + (1,) * (values.ndim - 1))
+
+
+def real_imu_errors_on_motion(
+    motion: Motion,
+    real: ImuArrays,
+    motion_t0_ns: int,
+    calib: ImuCalibration,
+    seed: int = 0,
+) -> ImuArrays:
+    """An IMU that agrees with ``motion`` (the trajectory the images follow) and keeps a real
+    IMU's error profile: at the real samples' times, the exact readings of ``motion``, plus the
+    real stream's errors against them (real less exact) averaged over ``REAL_BIAS_WINDOW_S``
+    (its bias drift, below ~0.1 Hz), plus those errors less their ``REAL_NOISE_WINDOW_S``
+    average (its noise and vibration, above ~5 Hz), plus white noise of ``calib``'s densities
+    (the sensor noise of the band in between). The band dropped in between is where the motion
+    is: there the real IMU and the trajectory disagree by what neither describes (EuRoC V1_01:
+    an accelerometer scale of 1.008 against OpenVINS's ground truth, and a bias that vicon2gt
+    sees wander 0.03-0.18 m/s^2 within 10 s; BENCHMARKS.md, "branch v101imu18").
+    ``motion`` is evaluated at ``(t_ns - motion_t0_ns)`` s."""
+    t_ns = np.asarray(real.t_ns, np.int64)
+    t_s = (t_ns - int(motion_t0_ns)).astype(np.float64) * 1e-9
+    gyro, accel = exact_imu(motion, t_s, calib.gravity_m_s2)
+    rate_hz = 1.0 / float(np.median(np.diff(t_s))) if len(t_s) > 1 else calib.rate_hz
+    bias_n = max(1, int(round(REAL_BIAS_WINDOW_S * rate_hz)))
+    noise_n = max(1, int(round(REAL_NOISE_WINDOW_S * rate_hz)))
+    rng = np.random.default_rng(seed)
+    out = []
+    for exact, meas, density in (
+        (gyro, real.gyro_rad_s, calib.gyro_noise_density),
+        (accel, real.accel_m_s2, calib.accel_noise_density),
+    ):
+        err = np.asarray(meas, np.float64) - exact
+        slow = _moving_average(err, bias_n)
+        fast = err - _moving_average(err, noise_n)
+        white = rng.standard_normal(exact.shape) * (density * np.sqrt(rate_hz))
+        out.append(exact + slow + fast + white)
+    return ImuArrays(t_ns=t_ns, gyro_rad_s=out[0], accel_m_s2=out[1])
