@@ -341,6 +341,9 @@ PRESETS: dict[str, dict[str, Any]] = {
         # the monocular front end's KLT has no predicted start: its backward check as measured
         # (on the base level only, the initialisation came 0.15 s later in test_mono_pipeline)
         "frontend": {"klt_backward_levels": 1},
+        # the global adjustment's IMU factors by the midpoint rule: the map's scale is the
+        # IMU's alone (loop-closed scale error room-figure8 / room-loop; BENCHMARKS.md, mono18h)
+        "loop": {"global_ba_imu_midpoint": True},
     },
 }
 

@@ -948,6 +948,7 @@ class LoopCloser:
                 max_keyframes_per_landmark=c.global_ba_max_keyframes_per_landmark,
                 thin_by=c.global_ba_thin_by,
                 max_observations_per_landmark=c.global_ba_max_observations_per_landmark,
+                imu_midpoint_rotation=c.global_ba_imu_midpoint,
             ),
             inertial=inertial,
             imu=self.calib.imu,

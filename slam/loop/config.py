@@ -211,6 +211,13 @@ class LoopClosureConfig:
     0.615, room-loop 0.523 -> 0.524, hall 3.119 -> 2.949; realistic room-figure8 0.855 ->
     0.894, room-loop 0.593 -> 0.589, hall 4.755 -> 4.637; monocular room-figure8 15.07 -> 2.31
     (BENCHMARKS.md, "gaimu17" and the thirteenth session)."""
+    global_ba_imu_midpoint: bool = False
+    """The global adjustment's IMU factors integrate each reading with the rotation at the
+    middle of its piece instead of GTSAM's at its start (``slam.backend.imu.integrate_pieces``),
+    removing a systematic acceleration (the specific force times half a piece's rotation) that
+    a monocular map's scale, held by the IMU alone, follows. On in ``euroc-mono-imu``
+    (monocular loop-closed room-figure8 / room-loop, BENCHMARKS.md "mono18h"); off for stereo,
+    whose scale the stereo pairs hold."""
     global_ba_fusion: bool = True
     """Before the global adjustment, match every keyframe landmark to landmark against the
     keyframes of *other passes* near its corrected pose (ORB-SLAM's loop fusion), so the

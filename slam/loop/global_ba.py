@@ -176,6 +176,10 @@ class GlobalBaParams:
     imu_odometry_edges: bool = False
     """Keep the odometry edge between two keyframes an IMU factor joins (False: the IMU
     factor replaces it; the edge is the smoother's estimate from the same readings)."""
+    imu_midpoint_rotation: bool = False
+    """The IMU factors' readings integrated by the midpoint rule (``slam.backend.imu.
+    integrate_pieces``' ``midpoint_rotation``): GTSAM's start-of-piece rotation leaves a
+    systematic acceleration that a monocular map's weakly held scale follows."""
     imu_bias_sigma_gyro_rad_s: float = 0.01
     imu_bias_sigma_accel_m_s2: float = 0.1
     """Weak priors on every bias state at the back end's estimate."""
@@ -567,7 +571,7 @@ def global_bundle_adjustment(
         assert inertial is not None and imu is not None
         imu_first = int(full.size())
         for a, b in links:
-            full.add(_imu_factor(a, b, inertial, values, imu, p.imu_scale_error, None))
+            full.add(_imu_factor(a, b, inertial, values, imu, p.imu_scale_error, None, p))
         factor_imu = imu_first + np.arange(len(links))
     for round_ in range(2):  # solve; drop outliers; solve again
         if deadline is not None and iteration_s is not None:
@@ -612,7 +616,7 @@ def global_bundle_adjustment(
                 full.remove(i)
             imu_first = int(full.size())
             for a, b in links:
-                full.add(_imu_factor(a, b, inertial, result, imu, refit_error, refit))
+                full.add(_imu_factor(a, b, inertial, result, imu, refit_error, refit, p))
             factor_imu = imu_first + np.arange(len(links))
         if reweigh is not None:
             # The kept observations of keyframes noisier than the round's: their factors again,
@@ -679,6 +683,7 @@ def _imu_factor(
     imu: ImuCalibration,
     scale_error: float,
     intrinsics: ImuIntrinsics | None,
+    p: GlobalBaParams,
 ) -> gtsam.CombinedImuFactor:
     """The IMU factor from keyframe ``a`` to ``b``: ``b``'s readings (through ``intrinsics``
     when given) preintegrated about ``a``'s bias in ``values``, their noise allowing for
@@ -695,7 +700,7 @@ def _imu_factor(
         else preintegration_params(imu)
     )
     pim = gtsam.PreintegratedCombinedMeasurements(params, values.atConstantBias(_bias_key(a)))
-    integrate_pieces(pim, pieces)
+    integrate_pieces(pim, pieces, p.imu_midpoint_rotation)
     return gtsam.CombinedImuFactor(
         _pose_key(a),
         _velocity_key(a),
