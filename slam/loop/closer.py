@@ -949,6 +949,7 @@ class LoopCloser:
                 thin_by=c.global_ba_thin_by,
                 max_observations_per_landmark=c.global_ba_max_observations_per_landmark,
                 imu_midpoint_rotation=c.global_ba_imu_midpoint,
+                imu_odometry_rotation_only=c.global_ba_imu_odometry_rotation_only,
             ),
             inertial=inertial,
             imu=self.calib.imu,

@@ -218,6 +218,14 @@ class LoopClosureConfig:
     a monocular map's scale, held by the IMU alone, follows. On in ``euroc-mono-imu``
     (monocular loop-closed room-figure8 / room-loop, BENCHMARKS.md "mono18h"); off for stereo,
     whose scale the stereo pairs hold."""
+    global_ba_imu_odometry_rotation_only: bool = False
+    """With ``global_ba_imu``: the odometry edges that no IMU factor replaces (keyframes the back
+    end handed no state for, e.g. those in the smoother's window when a monocular scale check
+    restarted it) hold only the relative rotation in the global adjustment; their translation,
+    the monocular smoother's at its scale of the time, is left out
+    (``GlobalBaParams.imu_odometry_rotation_only``). On in ``euroc-mono-imu``: room-figure8
+    seed 21's 11 such edges took the adjusted map's scale to 1.129 (BENCHMARKS.md, mono18i).
+    Stereo keeps them: its odometry's scale is the stereo pairs'."""
     global_ba_fusion: bool = True
     """Before the global adjustment, match every keyframe landmark to landmark against the
     keyframes of *other passes* near its corrected pose (ORB-SLAM's loop fusion), so the
