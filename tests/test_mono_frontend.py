@@ -1,10 +1,12 @@
 """The monocular front end's two-view start: a pure rotation is refused (no parallax, no
-scale), a translation gives the structure up to scale."""
+scale), a translation gives the structure up to scale; candidates triangulated at a later
+keyframe."""
 
 from __future__ import annotations
 
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 
@@ -108,3 +110,47 @@ def test_keyframes_come_at_least_every_interval_until_the_scale_is_known(scene):
     on.reframed = True  # the scale is known: the usual rules
     assert not on._need_keyframe(1_000_000_000 + int(0.4e9), 100)
     assert on._need_keyframe(1_000_000_000 + int(0.5e9), 100)
+
+
+def test_candidates_move_with_the_map_and_lost_ones_are_forgotten(scene):
+    """Candidates born at one keyframe, triangulated at the next after the map was moved
+    (a back-end correction between them): the landmarks are the true points moved by that
+    correction. Candidates whose tracks ended in between are forgotten, and so is the birth
+    pose of a keyframe no candidate is left of."""
+    mono, intr, _ = scene
+    fe = MonoFrontEnd(mono, FrontendConfig())
+    rng = np.random.default_rng(2)
+    image = cv2.GaussianBlur(rng.uniform(0, 255, (intr.height, intr.width)), (0, 0), 2.0)
+    frame = StereoFrame(t_ns=0, left=image.astype(np.uint8), right=None)
+    body_from_cam = mono.cameras[0].body_from_cam
+    fe.world_from_body = np.eye(4)
+    fe._make_keyframe(frame, frame.left)
+    n = len(fe.ids)
+    assert n > 50 and (fe.ids <= -2).all() and set(fe._cand) == set(fe.ids.tolist())
+    # the truth: each candidate's ray at a depth of 2-6 m from the first keyframe's camera
+    rays = np.hstack([fe._normalised(fe.px), np.ones((n, 1))])
+    pts_world = transform_points(body_from_cam, rays * rng.uniform(2.0, 6.0, (n, 1)))
+    # a third of the tracks end before the next keyframe
+    kept = np.arange(n) % 3 != 0
+    fe.px, fe.ids, fe.ages = fe.px[kept], fe.ids[kept], fe.ages[kept]
+    # the map is moved (new_from_old), then the next keyframe 0.3 m to the side
+    rot = make_transform(
+        np.array([[np.cos(0.3), -np.sin(0.3), 0], [np.sin(0.3), np.cos(0.3), 0], [0, 0, 1]]),
+        np.array([1.0, -2.0, 0.5]),
+    )
+    fe._move_world(rot)
+    second = make_transform(np.eye(3), np.array([0.0, 0.3, 0.0]))
+    fe.world_from_body = rot @ second
+    cam_from_world = invert_transform(second @ body_from_cam)
+    fe.px = intr.project(transform_points(cam_from_world, pts_world[kept])).astype(np.float32)
+    fe._make_keyframe(dataclasses.replace(frame, t_ns=200_000_000), frame.left)
+    made = np.array(sorted(fe.landmarks))
+    assert len(made) == kept.sum()  # each seen from 0.3 m apart, within 1e-3 px
+    # landmark ids follow the candidates' order (the kept rows)
+    truth = transform_points(rot, pts_world[kept])
+    got = np.array([fe.landmarks[i] for i in made])
+    assert np.abs(got - truth).max() < 1e-4  # float32 pixels; unmoved births: metres off
+    # the first keyframe's candidates are all landmarks now: its birth pose is gone; the
+    # second's new candidates are the ones remembered
+    assert set(fe._cand) == {int(i) for i in fe.ids if i <= -2}
+    assert set(fe._cand_cam_from_world) == {kf for _, kf in fe._cand.values()} == {1}

@@ -1,5 +1,5 @@
 """Worker processes run at their role's priority, set before they run any of their code, and
-leave SIGINT/SIGTERM to the main process."""
+leave SIGINT/SIGTERM to the main process; their BLAS libraries run on ``BLAS_THREADS``."""
 
 from __future__ import annotations
 
@@ -10,9 +10,11 @@ import threading
 import time
 from typing import Any
 
+import numpy as np
 import pytest
+from threadpoolctl import threadpool_info
 
-from slam.runtime.priority import ROLE_NICE
+from slam.runtime.priority import BLAS_THREADS, ROLE_NICE, limit_blas_threads
 from slam.runtime.worker import ProcessStage, WorkerCore
 
 
@@ -34,8 +36,8 @@ class _ReportPriority(WorkerCore):
 
 
 class _Probe(ProcessStage):
-    def __init__(self, role: str, idle: bool):
-        super().__init__("probe", 4, True, _ReportPriority, (), role=role, idle=idle)
+    def __init__(self, role: str, idle: bool, core: type[WorkerCore] = _ReportPriority):
+        super().__init__("probe", 4, True, core, (), role=role, idle=idle)
         self.got: list[Any] = []
 
     def process(self, msg: Any) -> None:
@@ -46,7 +48,10 @@ class _Probe(ProcessStage):
 
 
 def _priority_of(role: str, idle: bool) -> tuple[int, int, int, bool]:
-    stage = _Probe(role, idle)
+    return _answer(_Probe(role, idle))
+
+
+def _answer(stage: _Probe) -> Any:
     stage.start()
     stage.put("report")
     deadline = time.monotonic() + 60
@@ -202,3 +207,26 @@ def test_mapper_is_stopped_during_frames_only_in_paced_concurrent_runs(
     p = wiring.build(random_sequence(num_frames=3), cfg, None)
     assert p.mapper is not None and p.mapper.pausable == expected
     assert (p.frontend.quiet is not contextlib.nullcontext) == expected
+
+
+class _ReportBlas(WorkerCore):
+    def handle(self, msg: Any) -> list[Any]:
+        np.linalg.lstsq(np.eye(3), np.ones(3), rcond=None)  # numpy's BLAS is loaded and used
+        return [_blas_threads()]
+
+
+def _blas_threads() -> list[int]:
+    return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+
+
+def test_worker_blas_runs_on_blas_threads_and_the_main_process_gets_its_own_back() -> None:
+    """The limit is the worker's own: the main process's BLAS keeps its threads, and a run's
+    limit in the main process is undone at its end."""
+    before = _blas_threads()
+    in_worker = _answer(_Probe("backend", idle=False, core=_ReportBlas))
+    assert in_worker and set(in_worker) == {BLAS_THREADS}
+    assert _blas_threads() == before
+    limits = limit_blas_threads()
+    assert set(_blas_threads()) == {BLAS_THREADS}
+    limits.restore_original_limits()
+    assert _blas_threads() == before

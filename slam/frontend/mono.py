@@ -128,8 +128,12 @@ class MonoFrontEnd(FrontEnd):
             self.estimate_source = self._gated_estimate
         self._ref: _Reference | None = None
         self._next_candidate = -2  # candidates have ids <= -2; landmarks >= 0; -1 unused
-        # candidate id -> (cam_from_world at its first view (4, 4), normalised ray (2,), born at kf)
-        self._cand: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}
+        # candidate id -> (normalised ray at its first view (2,), keyframe born at); only the
+        # candidates still tracked (pruned at each keyframe)
+        self._cand: dict[int, tuple[np.ndarray, int]] = {}
+        # keyframe id -> its cam_from_world (4, 4), for the keyframes candidates were born at:
+        # one pose per keyframe, not one per candidate, to move with the map
+        self._cand_cam_from_world: dict[int, np.ndarray] = {}
         self.scale_adopted = 1.0
         self._wait_state = ""
 
@@ -179,10 +183,10 @@ class MonoFrontEnd(FrontEnd):
             if pose is not None:
                 setattr(self, name, scale_body_pose(pose, s, b))
         self.last_known_pose = scale_body_pose(self.last_known_pose, s, b)
-        for cid, (cam_from_world, ray, kf) in self._cand.items():
+        for kf, cam_from_world in self._cand_cam_from_world.items():
             world_from_cam = invert_transform(cam_from_world)
             world_from_cam[:3, 3] *= s
-            self._cand[cid] = (invert_transform(world_from_cam), ray, kf)
+            self._cand_cam_from_world[kf] = invert_transform(world_from_cam)
         self.landmark_map.scale(s)
         self._prior_cache = None
         self.scale_adopted = s
@@ -194,8 +198,8 @@ class MonoFrontEnd(FrontEnd):
         with the map (a triangulation mixes them with the current pose)."""
         super()._move_world(correction)
         old_from_new = invert_transform(correction)
-        for cid, (cam_from_world, ray, kf) in self._cand.items():
-            self._cand[cid] = (cam_from_world @ old_from_new, ray, kf)
+        for kf, cam_from_world in self._cand_cam_from_world.items():
+            self._cand_cam_from_world[kf] = cam_from_world @ old_from_new
         if self._ref is not None:
             self._ref.world_from_body = correction @ self._ref.world_from_body
 
@@ -231,6 +235,7 @@ class MonoFrontEnd(FrontEnd):
         self.ages = np.zeros(0, np.int64)
         self._retire(list(self.landmarks))
         self._cand.clear()
+        self._cand_cam_from_world.clear()
         self._anchor_kf = -1
         self.templates.clear()
         ref = self._ref
@@ -379,7 +384,9 @@ class MonoFrontEnd(FrontEnd):
         self._next_candidate -= len(new_px)
         rays = self._normalised(new_px) if len(new_px) else np.zeros((0, 2))
         for cid, ray in zip(cids.tolist(), rays, strict=True):
-            self._cand[cid] = (cam_from_world, ray, kf_id)
+            self._cand[cid] = (ray, kf_id)
+        if len(new_px):
+            self._cand_cam_from_world[kf_id] = cam_from_world
         self.px = np.vstack([self.px, new_px]).astype(np.float32)
         self.ids = np.concatenate([self.ids, cids.astype(np.int64)])
         self.ages = np.concatenate([self.ages, np.zeros(len(new_px), np.int64)])
@@ -420,23 +427,30 @@ class MonoFrontEnd(FrontEnd):
         world_from_cam: np.ndarray,
         kf_id: int,
     ) -> None:
-        """Candidates seen with enough parallax become landmarks (module docstring)."""
+        """Candidates seen with enough parallax become landmarks (module docstring); those
+        whose tracks were lost since the last keyframe are forgotten."""
         cfg = self.cfg
         rows = np.flatnonzero(self.ids <= -2)
         keep = np.ones(len(self.ids), dtype=bool)
-        if len(rows) == 0:
-            return
         cids = self.ids[rows].tolist()
+        self._cand = {c: self._cand[c] for c in cids}
+        if len(rows) == 0:
+            self._cand_cam_from_world.clear()
+            return
         births = [self._cand[c] for c in cids]
-        cam_a = np.array([b[0] for b in births])
-        rays_a = np.array([b[1] for b in births])
-        age = kf_id - np.array([b[2] for b in births])
+        born = np.array([b[1] for b in births])
+        born_at, which = np.unique(born, return_inverse=True)
+        cam_at = np.array([self._cand_cam_from_world[k] for k in born_at.tolist()])
+        cam_a = cam_at[which]
+        rays_a = np.array([b[0] for b in births])
+        age = kf_id - born
         rays_b = self._normalised(self.px[rows])
         pts = triangulate_two_view(cam_a, cam_from_world, rays_a, rays_b)
         f = float(self.cam0.fx)
         ea, za = _reprojection_px(cam_a, pts, rays_a, f)
         eb, zb = _reprojection_px(cam_from_world, pts, rays_b, f)
-        angle = _ray_angle_deg(np.array([invert_transform(c) for c in cam_a]), world_from_cam, pts)
+        world_from_cam_a = np.array([invert_transform(c) for c in cam_at])[which]
+        angle = _ray_angle_deg(world_from_cam_a, world_from_cam, pts)
         fits = (za > 0) & (zb > 0) & (ea < cfg.mono_max_reprojection_px)
         fits &= (eb < cfg.mono_max_reprojection_px) & np.isfinite(pts).all(axis=1)
         made = fits & (angle >= cfg.mono_min_angle_deg)
@@ -453,6 +467,10 @@ class MonoFrontEnd(FrontEnd):
             self.landmarks[lid] = p
         for r in rows[~keep[rows]].tolist():
             self._cand.pop(int(self.ids[r]), None)
+        alive = {kf for _, kf in self._cand.values()}
+        self._cand_cam_from_world = {
+            k: c for k, c in self._cand_cam_from_world.items() if k in alive
+        }
         if len(new_ids):
             self.landmark_map.add(
                 new_ids,

@@ -20,6 +20,8 @@ from __future__ import annotations
 import os
 import signal
 
+from threadpoolctl import threadpool_limits
+
 ROLE_NICE: dict[str, int] = {
     "frontend": 0,
     "reader": 0,
@@ -31,6 +33,14 @@ ROLE_NICE: dict[str, int] = {
 worker's end-of-run work runs at full priority, ``slam.runtime.worker``). Beside two busy
 processes, room-aggressive in real time dropped 38 % of its frames with the loop worker at
 nice 5, 9-15 % at nice 10."""
+
+BLAS_THREADS = 1
+"""Threads of the BLAS libraries (numpy's, scipy's, GTSAM's OpenBLAS) in each process of a run.
+Their linear algebra is small (the monocular scale check's least squares of ~190 x 100, batched
+4x4 SVDs), and each process had a pool of its own, one thread per core, spinning while it
+waits: beside a run's other processes a 189 x 102 ``lstsq`` took 97 ms of CPU (391 ms wall)
+with OpenBLAS's two threads, 2.2 ms with one, and the monocular back end spent most of its
+CPU there (BENCHMARKS.md, monospeed18)."""
 
 IDLE_ROLES = frozenset({"loop", "mapper"})
 """Roles that run under SCHED_IDLE when ``player.idle_workers`` is set."""
@@ -56,6 +66,14 @@ def apply_role(role: str, idle_workers: bool = False) -> None:
     """Give the calling thread (and the threads it starts) its role's priority (on Linux,
     nice levels and scheduling policies are per thread)."""
     lower_priority(ROLE_NICE.get(role, 0), idle_workers and role in IDLE_ROLES)
+
+
+def limit_blas_threads(threads: int = BLAS_THREADS) -> threadpool_limits:
+    """Limit the BLAS libraries loaded in this process to ``threads`` (:data:`BLAS_THREADS`);
+    the limits hold until the returned object's ``restore_original_limits()`` (or the end of
+    its ``with`` block). Libraries loaded later keep their own setting: call it once the
+    process's imports are done."""
+    return threadpool_limits(limits=threads, user_api="blas")
 
 
 def ignore_stop_signals() -> None:

@@ -46,6 +46,7 @@ from slam.runtime.loop import LoopClosureStage
 from slam.runtime.mapper import MapperStage
 from slam.runtime.memory import TreeMemory
 from slam.runtime.player import at_mid_exposure, play, restamped
+from slam.runtime.priority import limit_blas_threads
 from slam.runtime.reader import prefetched_messages
 from slam.runtime.recorder import Recorder
 from slam.runtime.report import Run, RunResult
@@ -237,6 +238,7 @@ def _run(
         messages = at_mid_exposure(messages)
     if p.backend is not None and cfg.backend.time_offset_online:
         messages = restamped(messages, p.backend.time_offset_ns)
+    blas = limit_blas_threads()  # this process's stages, until the run ends
     try:
         play(
             messages,
@@ -262,6 +264,7 @@ def _run(
             bar.close()
         result = run.end(progress)
         sys.setswitchinterval(switch_interval_s)
+        blas.restore_original_limits()
         if session is not None:
             session.close()
             result.session = session

@@ -32,7 +32,7 @@ from slam.core.messages import (
     WorkerFinal,
     WorkerReady,
 )
-from slam.runtime.priority import apply_role, ignore_stop_signals
+from slam.runtime.priority import apply_role, ignore_stop_signals, limit_blas_threads
 from slam.runtime.stage import Stage, StageError
 
 
@@ -148,6 +148,7 @@ def _worker_main(
     except Exception as exc:
         outbox.put(_failed(exc))
         return
+    limit_blas_threads()  # for the process's life; after the core's imports
     outbox.put(WorkerReady(os.getpid()))
     ended: list[bool] = []  # [interrupted] once EndOfStream arrived
     failed: list[bool] = []
