@@ -949,6 +949,8 @@ class LoopCloser:
                 thin_by=c.global_ba_thin_by,
                 max_observations_per_landmark=c.global_ba_max_observations_per_landmark,
                 imu_midpoint_rotation=c.global_ba_imu_midpoint,
+                imu_accel_walk_factor=c.global_ba_imu_accel_walk_factor,
+                imu_gyro_walk_factor=c.global_ba_imu_gyro_walk_factor,
             ),
             inertial=inertial,
             imu=self.calib.imu,

@@ -218,6 +218,16 @@ class LoopClosureConfig:
     a monocular map's scale, held by the IMU alone, follows. On in ``euroc-mono-imu``
     (monocular loop-closed room-figure8 / room-loop, BENCHMARKS.md "mono18h"); off for stereo,
     whose scale the stereo pairs hold."""
+    global_ba_imu_accel_walk_factor: float = bounded(1.0, gt=0)
+    """The global adjustment's IMU factors model the accelerometer bias's random walk as the
+    calibration's times this (``GlobalBaParams.imu_accel_walk_factor``). For an IMU whose bias
+    wanders further than its calibration says (EuRoC V1_01: 0.03-0.18 m/s^2 within 10 s, ~10x
+    the calibrated walk), where the monocular map's scale otherwise takes up the wander.
+    Off (1) by default and in every preset: on the suite's renders, whose simulated bias
+    follows the calibrated walk, the looser bias takes up part of a monocular scale error
+    instead (BENCHMARKS.md, v101mono18)."""
+    global_ba_imu_gyro_walk_factor: float = bounded(1.0, gt=0)
+    """The same for the gyro bias's random walk (``GlobalBaParams.imu_gyro_walk_factor``)."""
     global_ba_fusion: bool = True
     """Before the global adjustment, match every keyframe landmark to landmark against the
     keyframes of *other passes* near its corrected pose (ORB-SLAM's loop fusion), so the
