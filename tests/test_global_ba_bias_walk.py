@@ -54,7 +54,7 @@ def _scale_errors(wandering: bool, factors: tuple[float, ...]) -> list[float]:
     kf_t = np.arange(NUM_KF, dtype=np.int64) * KF_DT_NS
     truth = motion.sample(kf_t * 1e-9)
     true = truth.world_from_body()
-    d = rng.standard_normal((6000, 3))
+    d = rng.standard_normal((3000, 3))
     pts = truth.positions_m.mean(axis=0) + 5.0 * d / np.linalg.norm(d, axis=1, keepdims=True)
     origin = true[0][:3, 3]
     obs, poses, inertial = {}, {}, {}
@@ -112,6 +112,7 @@ def _scale_errors(wandering: bool, factors: tuple[float, ...]) -> list[float]:
 @pytest.mark.parametrize("wandering", [True, False])
 def test_bias_walk_factor_against_a_wandering_and_a_still_bias(wandering: bool) -> None:
     calibrated, loose = _scale_errors(wandering, (1.0, 10.0))
+    # measured (walk factor 1 / 10): wandering bias 1.74 % / 0.59 %, still bias 0.19 % / 0.36 %
     if wandering:
         assert loose < 0.5 * calibrated, (loose, calibrated)
     else:
