@@ -950,6 +950,8 @@ class LoopCloser:
                 max_observations_per_landmark=c.global_ba_max_observations_per_landmark,
                 imu_midpoint_rotation=c.global_ba_imu_midpoint,
                 imu_odometry_rotation_only=c.global_ba_imu_odometry_rotation_only,
+                imu_accel_walk_factor=c.global_ba_imu_accel_walk_factor,
+                imu_gyro_walk_factor=c.global_ba_imu_gyro_walk_factor,
             ),
             inertial=inertial,
             imu=self.calib.imu,

@@ -226,6 +226,18 @@ class LoopClosureConfig:
     (``GlobalBaParams.imu_odometry_rotation_only``). On in ``euroc-mono-imu``: room-figure8
     seed 21's 11 such edges took the adjusted map's scale to 1.129 (BENCHMARKS.md, mono18i).
     Stereo keeps them: its odometry's scale is the stereo pairs'."""
+    global_ba_imu_accel_walk_factor: float = bounded(1.0, gt=0)
+    """The global adjustment's IMU factors model the accelerometer bias's random walk as the
+    calibration's times this (``GlobalBaParams.imu_accel_walk_factor``). For an IMU whose bias
+    wanders further than its calibration says (EuRoC V1_01: 0.03-0.18 m/s^2 within 10 s, ~10x
+    the calibrated walk), where the monocular map's scale otherwise takes up the wander.
+    Monocular loop-closed ATE on three fair V1_01 renders, 1 -> 10 (with the gyro's 30): 10.06
+    / 14.99 / 9.59 -> 4.69 / 9.34 / 4.07 mm. Off (1) by default and in every preset: on the
+    suite's renders, whose simulated bias follows the calibrated walk, the looser bias takes up
+    part of a monocular scale error instead (keyframes, offline: room-figure8 s1 1.52 -> 10.86
+    mm, room-loop s2 0.41 -> 0.77; BENCHMARKS.md, v101mono18)."""
+    global_ba_imu_gyro_walk_factor: float = bounded(1.0, gt=0)
+    """The same for the gyro bias's random walk (``GlobalBaParams.imu_gyro_walk_factor``)."""
     global_ba_fusion: bool = True
     """Before the global adjustment, match every keyframe landmark to landmark against the
     keyframes of *other passes* near its corrected pose (ORB-SLAM's loop fusion), so the

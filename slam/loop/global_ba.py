@@ -26,6 +26,7 @@ the data handling is numpy.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -192,6 +193,16 @@ class GlobalBaParams:
     imu_bias_sigma_gyro_rad_s: float = 0.01
     imu_bias_sigma_accel_m_s2: float = 0.1
     """Weak priors on every bias state at the back end's estimate."""
+    imu_accel_walk_factor: float = 1.0
+    """The accelerometer bias's random walk in the IMU factors (and in the refit's bias model):
+    the calibration's times this. A real accelerometer's bias can wander further than its
+    calibrated random walk allows: EuRoC V1_01's wanders 0.03-0.18 m/s^2 within 10 s where
+    3e-3 m/s^3/sqrt(Hz) allows 0.01 (BENCHMARKS.md, v101imu18). Held to the calibrated walk,
+    the bias leaves that wander in the IMU factors, and a monocular map's scale, held by them
+    alone, takes it up. Looser than the data's, the bias takes up part of a monocular scale
+    error instead where the motion is slow and smooth (BENCHMARKS.md, v101mono18)."""
+    imu_gyro_walk_factor: float = 1.0
+    """The same for the gyro bias's random walk."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -353,6 +364,12 @@ def global_bundle_adjustment(
     their odometry edge (``imu_odometry_edges``)."""
     p = params or GlobalBaParams()
     t0 = time.perf_counter()
+    if imu is not None and (p.imu_accel_walk_factor != 1.0 or p.imu_gyro_walk_factor != 1.0):
+        imu = dataclasses.replace(
+            imu,
+            accel_random_walk=imu.accel_random_walk * p.imu_accel_walk_factor,
+            gyro_random_walk=imu.gyro_random_walk * p.imu_gyro_walk_factor,
+        )
     kf_ids = sorted(k for k in world_from_body if k in observations)
     cams = calib.cameras[:2]
     body_from_cam = [np.asarray(c.body_from_cam, dtype=float) for c in cams]
