@@ -942,6 +942,7 @@ class LoopCloser:
             params=GlobalBaParams(
                 pixel_sigma_px=c.global_ba_pixel_sigma_px,
                 outlier_sigmas=c.global_ba_outlier_sigmas,
+                rounds=c.global_ba_rounds,
                 keyframe_sigma_max=c.global_ba_keyframe_sigma_max,
                 odometry_sigma_scale=c.global_ba_odometry_sigma_scale,
                 time_budget_s=budget_s,

@@ -102,6 +102,12 @@ class GlobalBaParams:
     the ratio, at most this factor (1: every keyframe weighs ``pixel_sigma_px``). Dark,
     high-gain and blurred frames track worse: on realistic room-aggressive the observations'
     median error against the truth is 0.12 px at 0-4 ms exposures, 0.27 px at 8-11 ms."""
+    rounds: int = 2
+    """Levenberg-Marquardt solves. After each but the last the round's outliers
+    (``outlier_sigmas``) are dropped (and after the first the IMU refitted) before the next;
+    each round's limit comes from the errors the rounds before kept, so a third round trims
+    the tail the second narrowed. 3 took room-aggressive's adjustment 1-15 % closer to the
+    truth, clean more than realistic (BENCHMARKS.md, agg17d); 2 by default."""
     max_iterations: int = 15
     relative_error_tol: float = 1e-3
     """Stop when an iteration lowers the error by less than this share. On the four suite
@@ -601,7 +607,7 @@ def global_bundle_adjustment(
         for a, b in links:
             full.add(_imu_factor(a, b, inertial, values, imu, p.imu_scale_error, None, p))
         factor_imu = imu_first + np.arange(len(links))
-    for round_ in range(2):  # solve; drop outliers; solve again
+    for round_ in range(max(p.rounds, 1)):  # solve; drop outliers; solve again (and again)
         if deadline is not None and iteration_s is not None:
             if time.perf_counter() + iteration_s > deadline:
                 time_boxed = True  # no time for the second round's iterations
@@ -626,7 +632,7 @@ def global_bundle_adjustment(
             else None
         )
         refit = None
-        if round_ == 0 and links and p.imu_refit and not time_boxed:
+        if round_ == 0 and p.rounds > 1 and links and p.imu_refit and not time_boxed:
             assert inertial is not None and imu is not None
             found = _fit_imu_intrinsics(kf_ids, links, inertial, result, imu, p)
             if found is not None:
