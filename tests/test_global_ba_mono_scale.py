@@ -6,7 +6,8 @@ noiseless pixels: what is left is the integration's own error)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -137,25 +138,34 @@ def _scale_error(world_from_body: dict[int, np.ndarray], true: np.ndarray) -> fl
     return abs(umeyama(est, true[:, :3, 3], with_scale=True)[2] - 1.0)
 
 
+def _adjusted(problem, edges: Sequence[PoseEdge] = (), **params: Any) -> tuple[float, int]:
+    """The global adjustment of ``problem`` (``_mono_problem``'s tuple) with ``edges`` and
+    ``GlobalBaParams(min_observations=5, imu_refit=False, **params)``: (the adjusted
+    keyframes' ``_scale_error``, its IMU factors)."""
+    calib, obs, poses, inertial, t_ns, true = problem
+    p = GlobalBaParams(min_observations=5, imu_refit=False, **params)
+    res = global_bundle_adjustment(
+        calib, obs, poses, list(edges), [], 0, t_ns, p, inertial=inertial, imu=calib.imu
+    )
+    assert res is not None
+    return _scale_error(res.world_from_body, true), res.imu_factors
+
+
 def test_midpoint_rotation_holds_a_monocular_scale() -> None:
     """A monocular map (one camera) 1 % too large, 16 s of figure8, keyframes every 0.25 s,
     exact readings and pixels, IMU factors allowing 0.1 % scale error: the adjustment's IMU
     factors pull the scale back; with the midpoint rule what is left of the 1 % is well under
     what the start's rule leaves."""
-    calib, obs, poses, inertial, t_ns, true = _mono_problem()
+    problem = _mono_problem()
 
     def scale_error(midpoint: bool) -> float:
-        p = GlobalBaParams(
-            min_observations=5,
+        error, factors = _adjusted(
+            problem,
             imu_scale_error=0.001,  # factors as tight as exact readings allow: the rule shows
-            imu_refit=False,
             imu_midpoint_rotation=midpoint,
         )
-        res = global_bundle_adjustment(
-            calib, obs, poses, [], [], 0, t_ns, p, inertial=inertial, imu=calib.imu
-        )
-        assert res is not None and res.imu_factors == NUM_KF - 1
-        return _scale_error(res.world_from_body, true)
+        assert factors == NUM_KF - 1
+        return error
 
     start_rule, midpoint_rule = scale_error(False), scale_error(True)
     # measured: 0.017 % with the midpoint rule, 0.041 % with the start's
@@ -173,6 +183,7 @@ def test_odometry_edges_without_imu_factors_hold_no_scale() -> None:
     calib, obs, poses, inertial, t_ns, true = _mono_problem(1.0)
     gap = range(20, 30)
     inertial = {k: st for k, st in inertial.items() if k not in gap}
+    problem = (calib, obs, poses, inertial, t_ns, true)
     sigmas = np.array([0.002] * 3 + [0.0005] * 3)  # g2o order: translation first
     edges = []
     for a in range(19, 30):
@@ -181,17 +192,9 @@ def test_odometry_edges_without_imu_factors_hold_no_scale() -> None:
         edges.append(PoseEdge(a, a + 1, rel, np.diag(1.0 / sigmas**2)))
 
     def adjusted(rotation_only: bool) -> tuple[float, int]:
-        p = GlobalBaParams(
-            min_observations=5,
-            imu_refit=False,
-            imu_midpoint_rotation=True,
-            imu_odometry_rotation_only=rotation_only,
+        return _adjusted(
+            problem, edges, imu_midpoint_rotation=True, imu_odometry_rotation_only=rotation_only
         )
-        res = global_bundle_adjustment(
-            calib, obs, poses, edges, [], 0, t_ns, p, inertial=inertial, imu=calib.imu
-        )
-        assert res is not None
-        return _scale_error(res.world_from_body, true), res.imu_factors
 
     whole, factors = adjusted(False)
     rotation_only, factors_r = adjusted(True)
@@ -223,7 +226,7 @@ def test_bias_walk_factor_against_a_wandering_and_a_still_bias(wandering: bool) 
     as the data's ends closer to the true scale. Where the bias holds still, the looser walk
     lets the bias take up part of the scale error instead (why it is off by default)."""
     num_kf = 96
-    calib, obs, poses, inertial, t_ns, true = _mono_problem(
+    problem = _mono_problem(
         num_kf=num_kf,
         seed=7,
         num_points=3000,
@@ -231,17 +234,11 @@ def test_bias_walk_factor_against_a_wandering_and_a_still_bias(wandering: bool) 
     )
 
     def scale_error(factor: float) -> float:
-        p = GlobalBaParams(
-            min_observations=5,
-            imu_refit=False,
-            imu_midpoint_rotation=True,
-            imu_accel_walk_factor=factor,
+        error, factors = _adjusted(
+            problem, imu_midpoint_rotation=True, imu_accel_walk_factor=factor
         )
-        res = global_bundle_adjustment(
-            calib, obs, poses, [], [], 0, t_ns, p, inertial=inertial, imu=calib.imu
-        )
-        assert res is not None and res.imu_factors == num_kf - 1
-        return _scale_error(res.world_from_body, true)
+        assert factors == num_kf - 1
+        return error
 
     calibrated, loose = scale_error(1.0), scale_error(10.0)
     # measured (walk factor 1 / 10): wandering bias 1.74 % / 0.59 %, still bias 0.19 % / 0.36 %
