@@ -15,6 +15,7 @@ from slam.loop.closer import odometry_sigmas
 from slam.loop.config import LoopClosureConfig
 from slam.loop.global_ba import (
     GlobalBaParams,
+    GlobalBaResult,
     KeyframeObservations,
     _fuse,
     _keyframe_sigma_factors,
@@ -299,7 +300,7 @@ def test_a_third_round_trims_the_tail_again(loop_world) -> None:
         left[hit] += np.column_stack([np.cos(angle), np.sin(angle)]) * size[:, None]
         bad[k] = KeyframeObservations(o.landmark_ids, left, o.right_px, o.points_cam0)
     poses = {k: odom[k] for k in range(len(odom))}
-    res = {}
+    res: dict[int, tuple[float, GlobalBaResult]] = {}
     for n in (1, 2, 3):
         r = global_bundle_adjustment(
             calib, bad, poses, edges, pairs, 0, t_ns, GlobalBaParams(rounds=n)
@@ -312,9 +313,9 @@ def test_a_third_round_trims_the_tail_again(loop_world) -> None:
     for k in poses:
         np.testing.assert_array_equal(default.world_from_body[k], res[2][1].world_from_body[k])
     assert not np.array_equal(res[1][1].world_from_body[5], res[2][1].world_from_body[5])
-    assert res[3][1].outliers > res[2][1].outliers > 0  # type: ignore[attr-defined]
+    assert res[3][1].outliers > res[2][1].outliers > 0
     # the limit reported is the first round's, whatever the rounds
-    assert res[3][1].outlier_limit_px == res[2][1].outlier_limit_px  # type: ignore[attr-defined]
+    assert res[3][1].outlier_limit_px == res[2][1].outlier_limit_px
     assert max(a for a, _ in res.values()) < 0.002, {n: a for n, (a, _) in res.items()}
 
 
