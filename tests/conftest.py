@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from slam.core.messages import TrackingResult
+from slam.core.messages import Keyframe, TrackingResult
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 
@@ -30,6 +30,41 @@ def require(path: Path) -> Path:
     if not path.exists():
         pytest.skip(f"shared data missing: {path}")
     return path
+
+
+@pytest.fixture(scope="module")
+def euroc_micro_imu_gt(shared_data: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The real V1_01 IMU (EuRoC csv rows: t_ns, gyro rad/s, accel m/s^2) and the recomputed
+    OpenVINS ground truth (20 Hz, EuRoC columns: t_ns, p, q_wxyz, v, b_gyro, b_accel); the
+    200 Hz state_groundtruth_estimate0/data.csv is not part of the shared snapshot."""
+    root = shared_data / "euroc_v101_micro"
+    imu = np.loadtxt(require(root / "mav0/imu0/data.csv"), delimiter=",", comments="#")
+    gt = np.loadtxt(
+        require(root / "groundtruth_openvins/V1_01_easy.csv"), delimiter=",", comments="#"
+    )
+    return imu, gt
+
+
+def pose_keyframe(
+    t_ns: int, keyframe_id: int, world_from_body: np.ndarray, previous: np.ndarray | None = None
+) -> Keyframe:
+    """A keyframe with a pose and no features, for tests of the back end's IMU side;
+    ``previous``: the previous keyframe's pose (id ``keyframe_id - 1``), none for the first."""
+    return Keyframe(
+        t_ns=t_ns,
+        keyframe_id=keyframe_id,
+        frame_index=keyframe_id,
+        segment_id=0,
+        world_from_body_vo=world_from_body,
+        landmark_ids=np.zeros(0, np.int64),
+        pixels_left_undist=np.zeros((0, 2)),
+        pixels_right_undist=np.zeros((0, 2)),
+        points_world_vo=np.zeros((0, 3)),
+        image_left=np.zeros((0, 0), np.uint8),
+        image_right=None,
+        previous_keyframe_id=keyframe_id - 1 if previous is not None else -1,
+        previous_keyframe_world_from_body=previous,
+    )
 
 
 def in_memory(seq):  # type: ignore[no-untyped-def]

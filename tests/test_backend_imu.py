@@ -7,7 +7,6 @@ import logging
 import gtsam
 import numpy as np
 import pytest
-from conftest import require
 
 from slam.backend.config import BackendConfig
 from slam.backend.imu import (
@@ -23,20 +22,8 @@ from slam.core.geometry import quat_wxyz_to_matrix, so3_log
 from slam.core.messages import ImuSample
 
 
-@pytest.fixture(scope="module")
-def euroc(shared_data):
-    root = shared_data / "euroc_v101_micro"
-    imu = np.loadtxt(require(root / "mav0/imu0/data.csv"), delimiter=",", comments="#")
-    # the recomputed OpenVINS ground truth (20 Hz, EuRoC columns: p, q_wxyz, v, b_gyro, b_accel);
-    # the 200 Hz state_groundtruth_estimate0/data.csv is not part of the shared snapshot
-    gt = np.loadtxt(
-        require(root / "groundtruth_openvins/V1_01_easy.csv"), delimiter=",", comments="#"
-    )
-    return imu, gt
-
-
-def test_preintegration_matches_ground_truth_over_half_second_windows(euroc):
-    imu, gt = euroc
+def test_preintegration_matches_ground_truth_over_half_second_windows(euroc_micro_imu_gt):
+    imu, gt = euroc_micro_imu_gt
     t_ns = imu[:, 0].astype(np.int64)
     gyro, accel = imu[:, 1:4], imu[:, 4:7]
     t_gt = gt[:, 0].astype(np.int64)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import require
+from conftest import pose_keyframe
 
 from datasets.synth.vio_world import generate_world
 from slam.backend.config import BackendConfig
@@ -20,23 +20,13 @@ from slam.core.calibration import ImuCalibration
 from slam.core.geometry import quat_wxyz_to_matrix, so3_log, transform_points
 
 
-@pytest.fixture(scope="module")
-def euroc(shared_data):
-    root = shared_data / "euroc_v101_micro"
-    imu = np.loadtxt(require(root / "mav0/imu0/data.csv"), delimiter=",", comments="#")
-    gt = np.loadtxt(
-        require(root / "groundtruth_openvins/V1_01_easy.csv"), delimiter=",", comments="#"
-    )
-    return imu, gt
-
-
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     c = float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
-def test_still_interval_detected_on_euroc(euroc):
-    imu, gt = euroc
+def test_still_interval_detected_on_euroc(euroc_micro_imu_gt):
+    imu, gt = euroc_micro_imu_gt
     t_ns = imu[:, 0].astype(np.int64)
     n = find_still_prefix(t_ns, imu[:, 1:4], imu[:, 4:7], BackendConfig())
     still_s = (t_ns[n - 1] - t_ns[0]) * 1e-9
@@ -48,8 +38,8 @@ def test_still_interval_detected_on_euroc(euroc):
 
 
 @pytest.mark.parametrize("method", ["kalman", "align"])
-def test_static_init_on_euroc_gravity_and_gyro_bias(euroc, method):
-    imu, gt = euroc
+def test_static_init_on_euroc_gravity_and_gyro_bias(euroc_micro_imu_gt, method):
+    imu, gt = euroc_micro_imu_gt
     t_ns = imu[:, 0].astype(np.int64)
     n = find_still_prefix(t_ns, imu[:, 1:4], imu[:, 4:7], BackendConfig())
     gyro, accel = imu[:n, 1:4], imu[:n, 4:7]
@@ -105,14 +95,14 @@ def test_moving_start_alignment_on_simulated_flight(seed):
     assert np.abs(res.bias_gyro_rad_s - world.imu.gyro_bias_rad_s[0]).max() < 0.005
 
 
-def test_backend_still_start_on_real_euroc_imu(euroc):
+def test_backend_still_start_on_real_euroc_imu(euroc_micro_imu_gt):
     """The whole back end on the real stream: keyframes carry ground-truth poses as 'VO' (in the
     gravity-aligned Vicon frame) and no observations; it must initialise from the still start."""
     from datasets.rigs import euroc_like_calibration
     from slam.backend.smoother import VioBackend
-    from slam.core.messages import ImuSample, Keyframe
+    from slam.core.messages import ImuSample
 
-    imu, gt = euroc
+    imu, gt = euroc_micro_imu_gt
     calib = euroc_like_calibration(distortion=False)
     backend = VioBackend(calib, BackendConfig(still_init_method="align"))
     t_imu = imu[:, 0].astype(np.int64)
@@ -126,19 +116,7 @@ def test_backend_still_start_on_real_euroc_imu(euroc):
         pose = np.eye(4)
         pose[:3, :3] = quat_wxyz_to_matrix(gt[row, 4:8])
         pose[:3, 3] = gt[row, 1:4]
-        kf = Keyframe(
-            t_ns=t_kf,
-            keyframe_id=row,
-            frame_index=row,
-            segment_id=0,
-            world_from_body_vo=pose,
-            landmark_ids=np.zeros(0, np.int64),
-            pixels_left_undist=np.zeros((0, 2)),
-            pixels_right_undist=np.zeros((0, 2)),
-            points_world_vo=np.zeros((0, 3)),
-            image_left=np.zeros((1, 1), np.uint8),
-            image_right=None,
-        )
+        kf = pose_keyframe(t_kf, row, pose)
         estimates.append(backend.add_keyframe(kf))
     assert backend.stats.init_method == "still"
     assert all(e is not None for e in estimates)

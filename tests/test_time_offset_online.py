@@ -8,12 +8,13 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
+from conftest import pose_keyframe
 from scipy.spatial.transform import Rotation
 
 from datasets.synth import make_synthetic_sequence
 from slam.backend.config import BackendConfig
 from slam.backend.time_offset import OnlineTimeOffset
-from slam.core.messages import ImuSample, Keyframe, StereoFrame
+from slam.core.messages import ImuSample, StereoFrame
 from slam.runtime.player import restamped
 
 KF_PERIOD_NS = 200_000_000  # 5 keyframes a second, as the front end makes on this profile
@@ -52,21 +53,7 @@ def _feed(
         pose[:3, :3] = (
             pose[:3, :3] @ Rotation.from_rotvec(rng.normal(0, vis_noise_rad, 3)).as_matrix()
         )
-        kf = Keyframe(
-            t_ns=t,
-            keyframe_id=k,
-            frame_index=k,
-            segment_id=0,
-            world_from_body_vo=pose,
-            landmark_ids=np.zeros(0, np.int64),
-            pixels_left_undist=np.zeros((0, 2)),
-            pixels_right_undist=np.zeros((0, 2)),
-            points_world_vo=np.zeros((0, 3)),
-            image_left=np.zeros((0, 0), np.uint8),
-            image_right=None,
-            previous_keyframe_id=k - 1 if prev is not None else -1,
-            previous_keyframe_world_from_body=prev,
-        )
+        kf = pose_keyframe(t, k, pose, prev)
         est.add_keyframe(kf)
         prev = pose
     return est
