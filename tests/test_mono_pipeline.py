@@ -75,7 +75,7 @@ def test_slow_start_is_aligned_over_time_and_its_window_starts_the_smoother(slow
     assert accepted, b["mono_init_attempts"]
     assert cfg.backend.mono_init_span_keyframes <= accepted[0]["keyframes"]
     assert accepted[0]["keyframes"] < cfg.backend.mono_init_keyframes
-    assert b["mono_init_batch_scale_change"] > 0  # the batch ran and was used
+    assert b["mono_init_batch_velocity_sigma_m_s"] > 0  # the batch ran and was used
     gt = seq.ground_truth
     idx = np.clip(np.searchsorted(gt.t_ns, res.trajectory.t_ns), 0, len(gt.t_ns) - 1)
     assert np.abs(gt.t_ns[idx] - res.trajectory.t_ns).max() < 1_000_000
