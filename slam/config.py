@@ -328,10 +328,13 @@ PRESETS: dict[str, dict[str, Any]] = {
         # fails, and the scale check less the smoother's bias (V1_01's gentle take-off: the
         # start 18.9 -> 3.3 s after the motion, live 73.2 -> 65.8 mm, loop-closed 28.1 -> 30.0;
         # the suite byte-identical: BENCHMARKS.md, mono18d); the start tried from 6 keyframes
-        # once they span 1.85 s (slow motion: its keyframes come 0.25-0.5 s apart) and the
-        # aligned window's batch adjustment handed to the smoother as its prior (without it the
-        # smoother loses an early start's scale over its first seconds): the fair V1_01 renders
-        # start 3.04-3.19 -> 2.2-2.4 s after the motion (BENCHMARKS.md, v101start19)
+        # once they span 1.85 s (slow motion: its keyframes come 0.25-0.5 s apart), and such a
+        # start's window batch adjusted and handed to the smoother as its prior (without it the
+        # live first 10 s ran up to 10 % large): the fair V1_01 renders (medians of 3) start
+        # 3.19 -> 2.39 s after the motion, live 47.47 -> 22.32 mm, loop-closed 14.72 -> 12.90,
+        # live Sim(3) scale 1.0073 -> 1.0044; room-loop 3.52 -> 2.42 s, the hall 3.42 -> 2.87
+        # s (live median +4 %, loop-closed -1 %), room-figure8 and room-aggressive
+        # byte-identical (BENCHMARKS.md, v101start19)
         "backend": {
             "lag_s": 2.0,
             "map_landmarks": False,

@@ -80,7 +80,9 @@ def test_slow_start_is_aligned_over_time_and_its_window_starts_the_smoother(slow
     idx = np.clip(np.searchsorted(gt.t_ns, res.trajectory.t_ns), 0, len(gt.t_ns) - 1)
     assert np.abs(gt.t_ns[idx] - res.trajectory.t_ns).max() < 1_000_000
     _, _, scale = umeyama(res.trajectory.positions_m, gt.positions_m[idx], with_scale=True)
-    assert abs(scale - 1.0) < 0.03, scale
+    # measured 1.0029, started on 8 keyframes 2.4 s in (span alone 1.0016; without the span
+    # 1.0055 on 10 keyframes 3.0 s in; BENCHMARKS.md, v101start19)
+    assert abs(scale - 1.0) < 0.015, scale
 
 
 def test_a_start_on_the_full_window_is_not_batch_adjusted(mono_run):
