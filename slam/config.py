@@ -332,9 +332,10 @@ PRESETS: dict[str, dict[str, Any]] = {
         # start's window batch adjusted and handed to the smoother as its prior (without it the
         # live first 10 s ran up to 10 % large): the fair V1_01 renders (medians of 3) start
         # 3.19 -> 2.39 s after the motion, live 47.47 -> 22.32 mm, loop-closed 14.72 -> 12.90,
-        # live Sim(3) scale 1.0073 -> 1.0044; room-loop 3.52 -> 2.42 s, the hall 3.42 -> 2.87
-        # s (live median +4 %, loop-closed -1 %), room-figure8 and room-aggressive
-        # byte-identical (BENCHMARKS.md, v101start19)
+        # live Sim(3) scale 1.0073 -> 1.0044; room-loop 3.52 -> 2.42 s (live median -7 %,
+        # loop-closed 0.68 -> 0.82 mm: the batch's cost), the hall 3.42 -> 2.87 s (live +4 %,
+        # loop-closed -1 %), room-figure8 and room-aggressive byte-identical (BENCHMARKS.md,
+        # v101start19)
         "backend": {
             "lag_s": 2.0,
             "map_landmarks": False,

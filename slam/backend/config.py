@@ -179,9 +179,11 @@ class BackendConfig:
     """Monocular start, with ``mono_init_batch``: only a start accepted on fewer than
     ``mono_init_keyframes`` keyframes (``mono_init_span_s``'s slow-motion window) is batch
     adjusted; one on the full window starts from the alignment as without the batch. The
-    batch on every start was worse on room-loop and the hall's loop-closed ATE (mono18e, one
-    run each); with this, full-window starts (room-figure8, room-aggressive) are
-    byte-identical to the preset without the batch (BENCHMARKS.md, v101start19)."""
+    batch on every start (mono18e, one run each): room-figure8 loop-closed 15.07 -> 1.64 mm,
+    but room-loop +9 / +10 % (live / loop-closed) and the hall's loop-closed +49 %. With this,
+    full-window starts (room-figure8, room-aggressive) are byte-identical to the preset
+    without the batch; on the span start it costs room-loop's loop-closed ATE 0.68 -> 0.82 mm
+    (median of 3; live 6.81 -> 5.70; BENCHMARKS.md, v101start19)."""
 
     mono_scale_check_window_s: float = bounded(0.0, ge=0)
     """Monocular, after the start: every ``mono_scale_check_every_s`` the smoother's keyframe
