@@ -144,7 +144,12 @@ class BackendConfig:
     """Monocular start: 0 = off. Else the alignment is also tried with fewer than
     ``mono_init_keyframes`` (at least ``mono_init_span_keyframes``) once they span this long:
     on slow motion keyframes come every 0.25-0.5 s, and time, not their number, is what the
-    accelerations that fix the scale need."""
+    accelerations that fix the scale need. ``euroc-mono-imu`` sets 1.85 with
+    ``mono_init_batch`` (``mono_init_batch_span_only``): alone, on the fair V1_01 renders the
+    smoother, held by the loose ``prior_*`` sigmas on a slow take-off, ran 1.6-10 % large over
+    its first 10 s (live Sim(3) 0.984 / 0.902 / 0.965; with the batch 0.984 / 0.968 / 0.972)
+    and the live ATE median was 38.1 mm (with the batch 22.3, neither 47.5; BENCHMARKS.md,
+    v101start19)."""
     mono_init_span_keyframes: int = bounded(6, ge=4, le_field="mono_init_keyframes")
     """Monocular start: the fewest keyframes ``mono_init_span_s`` and
     ``mono_init_early_max_scale_std`` try the alignment with."""
@@ -164,10 +169,21 @@ class BackendConfig:
     window optimisation), and the smoother starts at the newest keyframe from its solution
     with its joint marginal (pose, velocity, bias) as the prior, instead of the alignment's
     newest state under the loose ``prior_*`` sigmas. The front end's map takes the batch's
-    scale. Off: one sequential run each (BENCHMARKS.md, mono18e), room-figure8 loop-closed
-    15.07 -> 1.64 mm and V1_01's Sim(3) scale 1.50 % -> 0.99 % off, but room-loop +9 / +10 %
-    (live / loop-closed) and the hall's loop-closed +49 %; with ``mono_init_span_s`` V1_01
-    got worse (live 83 -> 99 mm)."""
+    scale. On in ``euroc-mono-imu`` with ``mono_init_span_s`` and
+    ``mono_init_batch_span_only`` (BENCHMARKS.md, v101start19: the fair V1_01 renders start
+    3.19 -> 2.39 s after the motion, median of three, within 3 s); first measured on the
+    real-IMU V1_01 render, whose IMU disagrees with its images, where it was worse with the
+    span start (BENCHMARKS.md, mono18e)."""
+
+    mono_init_batch_span_only: bool = False
+    """Monocular start, with ``mono_init_batch``: only a start accepted on fewer than
+    ``mono_init_keyframes`` keyframes (``mono_init_span_s``'s slow-motion window) is batch
+    adjusted; one on the full window starts from the alignment as without the batch. The
+    batch on every start (mono18e, one run each): room-figure8 loop-closed 15.07 -> 1.64 mm,
+    but room-loop +9 / +10 % (live / loop-closed) and the hall's loop-closed +49 %. With this,
+    full-window starts (room-figure8, room-aggressive) are byte-identical to the preset
+    without the batch; on the span start it costs room-loop's loop-closed ATE 0.68 -> 0.82 mm
+    (median of 3; live 6.81 -> 5.70; BENCHMARKS.md, v101start19)."""
 
     mono_scale_check_window_s: float = bounded(0.0, ge=0)
     """Monocular, after the start: every ``mono_scale_check_every_s`` the smoother's keyframe
