@@ -244,6 +244,13 @@ class LoopClosureConfig:
     mm, room-loop s2 0.41 -> 0.77; BENCHMARKS.md, v101mono18)."""
     global_ba_imu_gyro_walk_factor: float = bounded(1.0, gt=0)
     """The same for the gyro bias's random walk (``GlobalBaParams.imu_gyro_walk_factor``)."""
+    global_ba_imu_walk_gate: float = bounded(0.0, ge=0)
+    """With it above 0, each of the two walk factors above applies only where the back end's
+    estimates of that sensor's bias wandered at least this many times as far as the calibrated
+    random walk allows (``GlobalBaParams.imu_walk_gate``, ``slam.loop.global_ba.bias_wander``:
+    the median over keyframes of the squared change over 10 s against the walk's variance;
+    stats.json ``loop_closure.global_ba.imu_*_bias_wander`` and ``imu_*_walk_factor``); 0: they
+    always apply."""
     global_ba_fusion: bool = True
     """Before the global adjustment, match every keyframe landmark to landmark against the
     keyframes of *other passes* near its corrected pose (ORB-SLAM's loop fusion), so the
