@@ -231,6 +231,11 @@ class FrontendConfig:
     """Two-view triangulation: largest reprojection error in either view, pixels."""
     mono_candidate_max_keyframes: int = bounded(6, ge=1)
     """A candidate not triangulated after this many keyframes is dropped."""
+    mono_map_rescale_tolerance: float = bounded(0.0, ge=0, lt=1)
+    """0 = off. Else, when the back end's landmarks and ours disagree in scale by more than
+    this fraction (median ratio of distances between landmark pairs), our map is scaled to
+    theirs about the camera (``MonoFrontEnd._rescale_map``): the back end's corrections are
+    rigid, so a slipped map scale otherwise stays."""
 
 
 @dataclass
