@@ -353,7 +353,19 @@ PRESETS: dict[str, dict[str, Any]] = {
         # IMU's alone (loop-closed scale error room-figure8 / room-loop; BENCHMARKS.md, mono18h)
         # and the odometry edges no IMU factor replaces hold only their rotation (their
         # translation is at the smoother's scale of the time: room-figure8 seed 21; mono18i)
-        "loop": {"global_ba_imu_midpoint": True, "global_ba_imu_odometry_rotation_only": True},
+        # and, where the back end's bias estimates wandered more than 1.5x as far as the
+        # calibrated random walks allow (the real V1_01 IMU's on the fair renders: accelerometer
+        # 1.9-2.3, gyro 2.2-3.4; the suite's simulated IMU: 0.47-1.05), the adjustment's walks
+        # x10 (accelerometer) / x30 (gyro), so that its biases follow the wander instead of the
+        # map's scale (fair V1_01 renders, loop-closed 14.72 / 15.02 / 12.79 -> 9.13 / 8.42 /
+        # 6.00 mm; the suite unchanged: the gate passes none of it; BENCHMARKS.md, v101loop19)
+        "loop": {
+            "global_ba_imu_midpoint": True,
+            "global_ba_imu_odometry_rotation_only": True,
+            "global_ba_imu_accel_walk_factor": 10.0,
+            "global_ba_imu_gyro_walk_factor": 30.0,
+            "global_ba_imu_walk_gate": 1.5,
+        },
     },
 }
 

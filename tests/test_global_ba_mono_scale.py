@@ -18,6 +18,7 @@ from datasets.rigs import euroc_like_calibration
 from datasets.synth.imu_sim import simulate_imu
 from datasets.synth.trajectories import make_profile
 from slam.backend.imu import integrate_pieces, integration_pieces, preintegration_params
+from slam.config import preset_config
 from slam.core.calibration import Calibration
 from slam.core.geometry import invert_transform
 from slam.core.messages import KeyframeInertial
@@ -292,11 +293,12 @@ def test_bias_wander_measures_the_walk_against_its_calibration(walk_factor: floa
 
 @pytest.mark.parametrize("wandering", [True, False])
 def test_walk_gate_loosens_the_walk_only_where_the_bias_wandered(wandering: bool) -> None:
-    """``GlobalBaParams.imu_walk_gate``: the monocular problem with a back end's accelerometer
-    bias estimates that wandered (as ``_bias_wander``: 0.08 m/s^2 within 10 s) or held still,
-    the gyro's still. The accelerometer's walk factor applies only in the first case, the
-    gyro's in neither; a gated adjustment that applies a factor is the adjustment with that
-    factor exactly, one that applies none the calibrated one."""
+    """``GlobalBaParams.imu_walk_gate`` at ``euroc-mono-imu``'s factors and gate: the monocular
+    problem with a back end's accelerometer bias estimates that wandered (as ``_bias_wander``:
+    0.08 m/s^2 within 10 s) or held still, the gyro's still. The accelerometer's walk factor
+    applies only in the first case, the gyro's in neither; a gated adjustment that applies a
+    factor is the adjustment with that factor exactly, one that applies none the calibrated
+    one."""
     calib, obs, poses, inertial, t_ns, true = _mono_problem(num_kf=48, num_points=2000)
     wander = _bias_wander(np.array([t_ns[k] for k in sorted(t_ns)]) * 1e-9)
     if wandering:
@@ -322,11 +324,17 @@ def test_walk_gate_loosens_the_walk_only_where_the_bias_wandered(wandering: bool
         assert res is not None
         return res
 
-    gated = adjust(imu_accel_walk_factor=10.0, imu_gyro_walk_factor=30.0, imu_walk_gate=2.0)
+    loop = preset_config("euroc-mono-imu").loop  # the monocular preset's factors and gate
+    assert loop.global_ba_imu_accel_walk_factor == 10.0 and loop.global_ba_imu_walk_gate > 0
+    gated = adjust(
+        imu_accel_walk_factor=loop.global_ba_imu_accel_walk_factor,
+        imu_gyro_walk_factor=loop.global_ba_imu_gyro_walk_factor,
+        imu_walk_gate=loop.global_ba_imu_walk_gate,
+    )
     assert gated.imu_bias_wander is not None
     accel_wander, gyro_wander = gated.imu_bias_wander
     assert gyro_wander == 0.0
-    assert (accel_wander >= 2.0) == wandering, accel_wander
+    assert (accel_wander >= loop.global_ba_imu_walk_gate) == wandering, accel_wander
     assert gated.imu_walk_factors == ((10.0, 1.0) if wandering else (1.0, 1.0))
     same = adjust(imu_accel_walk_factor=10.0 if wandering else 1.0)
     for k, pose in same.world_from_body.items():
