@@ -45,6 +45,10 @@ from slam.imu_buffer import ImuBuffer
 MONO_LANDMARK_GATE = 0.1
 MONO_RESCALE_MIN_LANDMARKS = 30  # the back end's landmarks a map rescale needs (pairs of them)
 MONO_RESCALE_AGREEMENT = 0.8  # ... and the share of their pairs off in the median's direction
+# ... and not within this many seconds of the first metric estimate: the back end's points jump
+# then (V1_01's renders: rescales 0.5-9.4 s after the start swung 0.65-1.71 and back, and
+# cost the loop-closed ATE; BENCHMARKS.md, v101loop19)
+MONO_RESCALE_SETTLE_S = 20.0
 WAITING = "waiting for motion"
 INITIALISING = "initialising"
 
@@ -140,6 +144,8 @@ class MonoFrontEnd(FrontEnd):
         self._wait_state = ""
         # (keyframe id, scale) of the last estimate that found our map off in scale
         self._rescale_seen: tuple[int, float] | None = None
+        # no rescale before this estimate time (``MONO_RESCALE_SETTLE_S`` after the first one)
+        self._rescale_from_ns: int | None = None
 
     # ------------------------------------------------------------------ feedback
     def _gated_estimate(self) -> Estimate | None:
@@ -162,7 +168,10 @@ class MonoFrontEnd(FrontEnd):
             else np.zeros(3)
         )
         if self.cfg.mono_map_rescale_tolerance > 0 and self.reframed:
-            ours = self._rescale_map(est, ours, theirs, centre)
+            if self._rescale_from_ns is None:
+                self._rescale_from_ns = est.t_ns + int(MONO_RESCALE_SETTLE_S * 1e9)
+            if est.t_ns >= self._rescale_from_ns:
+                ours = self._rescale_map(est, ours, theirs, centre)
         dist = np.linalg.norm(ours - centre, axis=1)
         with np.errstate(invalid="ignore"):
             ok = np.linalg.norm(theirs - ours, axis=1) <= MONO_LANDMARK_GATE * dist
