@@ -365,7 +365,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         # translation is at the smoother's scale of the time: room-figure8 seed 21; mono18i)
         # and, where the back end's bias estimates wandered more than 1.5x as far as the
         # calibrated random walks allow (the real V1_01 IMU's on the fair renders: accelerometer
-        # 1.9-2.3, gyro 2.2-3.4; the suite's simulated IMU: 0.19-1.05), the adjustment's walks
+        # 1.8-2.3, gyro 2.2-3.5; the suite's simulated IMU: 0.19-1.05), the adjustment's walks
         # x10 (accelerometer) / x30 (gyro), so that its biases follow the wander instead of the
         # map's scale (fair V1_01 renders, loop-closed 14.72 / 15.02 / 12.79 -> 9.13 / 8.42 /
         # 6.00 mm; the suite unchanged: the gate passes none of it; BENCHMARKS.md, v101loop19)

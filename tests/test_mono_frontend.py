@@ -245,7 +245,7 @@ def test_a_noisy_back_end_does_not_rescale_the_map(scene):
 
 def test_no_rescale_right_after_the_start(scene):
     """The back end's points jump in the first seconds after its start (V1_01's renders:
-    rescales 0.5-9.4 s after it swung 0.65-1.71 and back): for ``MONO_RESCALE_SETTLE_S``
+    rescales 0.5-9.3 s after it swung 0.65-1.71 and back): for ``MONO_RESCALE_SETTLE_S``
     after the first metric estimate the map is not rescaled, even where estimates in a row
     find it 25 % small; from then on it is, at the second estimate that finds it so."""
     from slam.frontend.mono import MONO_RESCALE_SETTLE_S

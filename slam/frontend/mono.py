@@ -46,7 +46,7 @@ MONO_LANDMARK_GATE = 0.1
 MONO_RESCALE_MIN_LANDMARKS = 30  # the back end's landmarks a map rescale needs (pairs of them)
 MONO_RESCALE_AGREEMENT = 0.8  # ... and the share of their pairs off in the median's direction
 # ... and not within this many seconds of the first metric estimate: the back end's points jump
-# then (V1_01's renders: rescales 0.5-9.4 s after the start swung 0.65-1.71 and back, and
+# then (V1_01's renders: rescales 0.5-9.3 s after the start swung 0.65-1.71 and back, and
 # cost the loop-closed ATE; BENCHMARKS.md, v101loop19)
 MONO_RESCALE_SETTLE_S = 20.0
 WAITING = "waiting for motion"

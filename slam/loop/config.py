@@ -253,7 +253,7 @@ class LoopClosureConfig:
     the median over keyframes of the squared change over 10 s against the walk's variance;
     stats.json ``loop_closure.global_ba.imu_*_bias_wander`` and ``imu_*_walk_factor``); 0: they
     always apply. ``euroc-mono-imu``: 1.5 (the fair V1_01 renders' accelerometer / gyro
-    wander 1.9-2.3 / 2.2-3.4, the suite's at most 1.05; BENCHMARKS.md, v101loop19)."""
+    wander 1.8-2.3 / 2.2-3.5, the suite's at most 1.05; BENCHMARKS.md, v101loop19)."""
     global_ba_fusion: bool = True
     """Before the global adjustment, match every keyframe landmark to landmark against the
     keyframes of *other passes* near its corrected pose (ORB-SLAM's loop fusion), so the
