@@ -6,6 +6,7 @@ noiseless pixels: what is left is the integration's own error)."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -17,11 +18,17 @@ from datasets.rigs import euroc_like_calibration
 from datasets.synth.imu_sim import simulate_imu
 from datasets.synth.trajectories import make_profile
 from slam.backend.imu import integrate_pieces, integration_pieces, preintegration_params
+from slam.config import preset_config
 from slam.core.calibration import Calibration
 from slam.core.geometry import invert_transform
 from slam.core.messages import KeyframeInertial
 from slam.evaluation.align import umeyama
-from slam.loop.global_ba import GlobalBaParams, KeyframeObservations, global_bundle_adjustment
+from slam.loop.global_ba import (
+    GlobalBaParams,
+    KeyframeObservations,
+    bias_wander,
+    global_bundle_adjustment,
+)
 from slam.posegraph import PoseEdge
 
 KF_DT_NS = 250_000_000
@@ -246,3 +253,90 @@ def test_bias_walk_factor_against_a_wandering_and_a_still_bias(wandering: bool) 
         assert loose < 0.5 * calibrated, (loose, calibrated)
     else:
         assert calibrated < loose, (calibrated, loose)
+
+
+def _walk_states(
+    calib: Calibration, walk_factor: float, seconds: float, seed: int
+) -> dict[int, KeyframeInertial]:
+    """Keyframes every 0.25 s whose bias estimates follow random walks of the calibrated
+    densities times ``walk_factor`` (no readings: ``bias_wander`` looks at the biases alone)."""
+    assert calib.imu is not None
+    rng = np.random.default_rng(seed)
+    dt = KF_DT_NS * 1e-9
+    n = int(seconds / dt)
+    walk = {
+        name: np.cumsum(rng.normal(0.0, walk_factor * q * np.sqrt(dt), (n, 3)), axis=0)
+        for name, q in (("a", calib.imu.accel_random_walk), ("g", calib.imu.gyro_random_walk))
+    }
+    empty = (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)))
+    return {
+        k: KeyframeInertial(k, k * KF_DT_NS, np.zeros(3), walk["g"][k], walk["a"][k], k - 1, *empty)
+        for k in range(n)
+    }
+
+
+@pytest.mark.parametrize("walk_factor", [1.0, 3.0])
+def test_bias_wander_measures_the_walk_against_its_calibration(walk_factor: float) -> None:
+    """``bias_wander`` of biases that follow random walks of the calibrated densities (times
+    ``walk_factor``), 600 s: the median of a chi-square with 3 degrees of freedom over 3
+    (0.79) times the factor squared, for both sensors."""
+    calib = euroc_like_calibration()
+    assert calib.imu is not None
+    wander = bias_wander(_walk_states(calib, walk_factor, 600.0, seed=3), calib.imu)
+    assert wander is not None
+    expected = 0.79 * walk_factor**2
+    # measured: 0.80 / 0.77 at 1, 7.4 / 7.0 at 3 (accelerometer / gyro)
+    for value in wander:
+        assert 0.75 * expected < value < 1.25 * expected, (wander, expected)
+    assert bias_wander(_walk_states(calib, 1.0, 5.0, seed=3), calib.imu) is None
+
+
+@pytest.mark.parametrize("wandering", [True, False])
+def test_walk_gate_loosens_the_walk_only_where_the_bias_wandered(wandering: bool) -> None:
+    """``GlobalBaParams.imu_walk_gate`` at ``euroc-mono-imu``'s factors and gate: the monocular
+    problem with a back end's accelerometer bias estimates that wandered (as ``_bias_wander``:
+    0.08 m/s^2 within 10 s) or held still, the gyro's still. The accelerometer's walk factor
+    applies only in the first case, the gyro's in neither; a gated adjustment that applies a
+    factor is the adjustment with that factor exactly, one that applies none the calibrated
+    one."""
+    calib, obs, poses, inertial, t_ns, true = _mono_problem(num_kf=48, num_points=2000)
+    wander = _bias_wander(np.array([t_ns[k] for k in sorted(t_ns)]) * 1e-9)
+    if wandering:
+        inertial = {
+            k: s.with_state(s.velocity_world_m_s, s.bias_gyro_rad_s, wander[k])
+            for k, s in inertial.items()
+        }
+
+    def adjust(**params: Any):
+        p = GlobalBaParams(min_observations=5, imu_refit=False, imu_midpoint_rotation=True)
+        res = global_bundle_adjustment(
+            calib,
+            obs,
+            poses,
+            [],
+            [],
+            0,
+            t_ns,
+            dataclasses.replace(p, **params),
+            inertial=inertial,
+            imu=calib.imu,
+        )
+        assert res is not None
+        return res
+
+    loop = preset_config("euroc-mono-imu").loop  # the monocular preset's factors and gate
+    assert loop.global_ba_imu_accel_walk_factor == 10.0 and loop.global_ba_imu_walk_gate > 0
+    gated = adjust(
+        imu_accel_walk_factor=loop.global_ba_imu_accel_walk_factor,
+        imu_gyro_walk_factor=loop.global_ba_imu_gyro_walk_factor,
+        imu_walk_gate=loop.global_ba_imu_walk_gate,
+    )
+    assert gated.imu_bias_wander is not None
+    accel_wander, gyro_wander = gated.imu_bias_wander
+    assert gyro_wander == 0.0
+    assert (accel_wander >= loop.global_ba_imu_walk_gate) == wandering, accel_wander
+    assert gated.imu_walk_factors == ((10.0, 1.0) if wandering else (1.0, 1.0))
+    same = adjust(imu_accel_walk_factor=10.0 if wandering else 1.0)
+    for k, pose in same.world_from_body.items():
+        np.testing.assert_array_equal(gated.world_from_body[k], pose)
+    assert gated.summary()["imu_accel_walk_factor"] == gated.imu_walk_factors[0]

@@ -43,6 +43,12 @@ from slam.frontend.tracker import MAX_STORED_KEYFRAME_POSES, FrontEnd
 from slam.imu_buffer import ImuBuffer
 
 MONO_LANDMARK_GATE = 0.1
+MONO_RESCALE_MIN_LANDMARKS = 30  # the back end's landmarks a map rescale needs (pairs of them)
+MONO_RESCALE_AGREEMENT = 0.8  # ... and the share of their pairs off in the median's direction
+# ... and not within this many seconds of the first metric estimate: the back end's points jump
+# then (V1_01's renders: rescales 0.5-9.3 s after the start swung 0.65-1.71 and back, and
+# cost the loop-closed ATE; BENCHMARKS.md, v101loop19)
+MONO_RESCALE_SETTLE_S = 20.0
 WAITING = "waiting for motion"
 INITIALISING = "initialising"
 
@@ -136,6 +142,10 @@ class MonoFrontEnd(FrontEnd):
         self._cand_cam_from_world: dict[int, np.ndarray] = {}
         self.scale_adopted = 1.0
         self._wait_state = ""
+        # (keyframe id, scale) of the last estimate that found our map off in scale
+        self._rescale_seen: tuple[int, float] | None = None
+        # no rescale before this estimate time (``MONO_RESCALE_SETTLE_S`` after the first one)
+        self._rescale_from_ns: int | None = None
 
     # ------------------------------------------------------------------ feedback
     def _gated_estimate(self) -> Estimate | None:
@@ -157,6 +167,11 @@ class MonoFrontEnd(FrontEnd):
             if self.world_from_body is not None
             else np.zeros(3)
         )
+        if self.cfg.mono_map_rescale_tolerance > 0 and self.reframed:
+            if self._rescale_from_ns is None:
+                self._rescale_from_ns = est.t_ns + int(MONO_RESCALE_SETTLE_S * 1e9)
+            if est.t_ns >= self._rescale_from_ns:
+                ours = self._rescale_map(est, ours, theirs, centre)
         dist = np.linalg.norm(ours - centre, axis=1)
         with np.errstate(invalid="ignore"):
             ok = np.linalg.norm(theirs - ours, axis=1) <= MONO_LANDMARK_GATE * dist
@@ -167,6 +182,62 @@ class MonoFrontEnd(FrontEnd):
         )
         self._gate_cache = (est, gated)
         return gated
+
+    def _rescale_map(
+        self,
+        est: Estimate,
+        ours: np.ndarray,
+        theirs: np.ndarray,
+        centre: np.ndarray,
+    ) -> np.ndarray:
+        """Our landmarks scaled about the camera centre ``centre`` to the back end's where
+        the two maps disagree in scale by more than ``mono_map_rescale_tolerance`` (returns
+        ``ours`` moved the same way). The scale: the median ratio of the back end's distances
+        between pairs of the landmarks both hold to ours (a rigid offset between the two
+        worlds does not enter). Why: the corrections from the back end are rigid, and a
+        landmark is adopted only within ``MONO_LANDMARK_GATE`` of ours, so a map whose scale
+        slipped by more than that stays off (V1_01's renders: 20-27 % small after a fast
+        stretch at 83-85 s, to the end); its triangulations then inherit the scale from the
+        poses PnP finds on it, and the loop closer's verification, which reads the keyframes'
+        landmarks, fails against the older, metric keyframes."""
+        both = np.flatnonzero(np.isfinite(ours).all(axis=1) & np.isfinite(theirs).all(axis=1))
+        if len(both) < MONO_RESCALE_MIN_LANDMARKS:
+            return ours
+        other = np.roll(both, len(both) // 2)  # pairs half the list apart (no randomness)
+        ours_d = np.linalg.norm(ours[both] - ours[other], axis=1)
+        theirs_d = np.linalg.norm(theirs[both] - theirs[other], axis=1)
+        apart = ours_d > 1e-6
+        if apart.sum() < MONO_RESCALE_MIN_LANDMARKS:
+            return ours
+        ratio = theirs_d[apart] / ours_d[apart]
+        scale = float(np.median(ratio))
+        if not np.isfinite(scale) or abs(scale - 1.0) <= self.cfg.mono_map_rescale_tolerance:
+            self._rescale_seen = None
+            return ours
+        # the back end's points from short baselines are far off in depth now and then (right
+        # after its start: medians of 0.6-2.1 a keyframe apart): only a map that nearly every
+        # pair says is off the same way is rescaled
+        if np.mean((ratio > 1.0) == (scale > 1.0)) < MONO_RESCALE_AGREEMENT:
+            self._rescale_seen = None
+            return ours
+        # ... and that two estimates in a row (of different keyframes) find off by the same
+        # scale, within the tolerance: right after its start the back end's points jump
+        # (V1_01, 1.5 s after the start: 0.63, 1.51, 1.26, 2.06, 0.56 on five estimates)
+        seen, self._rescale_seen = self._rescale_seen, (est.keyframe_id, scale)
+        if (
+            seen is None
+            or seen[0] == est.keyframe_id
+            or abs(np.log(scale / seen[1])) > np.log1p(self.cfg.mono_map_rescale_tolerance)
+        ):
+            return ours
+        self._rescale_seen = None
+        for lid, p in self.landmarks.items():
+            self.landmarks[lid] = centre + scale * (p - centre)
+        self.stats.map_rescales += 1
+        self.stats.state_log.append(
+            (est.t_ns, f"map rescaled by {scale:.3f} to the back end's landmarks")
+        )
+        return centre + scale * (ours - centre)
 
     # ------------------------------------------------------------------ scale
     def _adopt_scale(self, est: Estimate, fe_pose: np.ndarray) -> np.ndarray:

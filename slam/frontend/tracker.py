@@ -69,6 +69,9 @@ class FrontendStats:
     """Frames whose PnP pose was fused with the IMU's prediction for their predicted motion
     blur (``blur_pose_prior_min_px``)."""
     estimate_corrections: int = 0
+    map_rescales: int = 0
+    """Monocular: times the map was scaled to the back end's landmarks
+    (``mono_map_rescale_tolerance``)."""
     klt_predicted: int = 0
     """Tracks started at their landmark's projection from the predicted pose
     (``klt_predicted_levels``)..."""

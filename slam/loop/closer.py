@@ -953,6 +953,7 @@ class LoopCloser:
                 imu_odometry_rotation_only=c.global_ba_imu_odometry_rotation_only,
                 imu_accel_walk_factor=c.global_ba_imu_accel_walk_factor,
                 imu_gyro_walk_factor=c.global_ba_imu_gyro_walk_factor,
+                imu_walk_gate=c.global_ba_imu_walk_gate,
             ),
             inertial=inertial,
             imu=self.calib.imu,

@@ -238,12 +238,22 @@ class LoopClosureConfig:
     wanders further than its calibration says (EuRoC V1_01: 0.03-0.18 m/s^2 within 10 s, ~10x
     the calibrated walk), where the monocular map's scale otherwise takes up the wander.
     Monocular loop-closed ATE on three fair V1_01 renders, 1 -> 10 (with the gyro's 30): 10.06
-    / 14.99 / 9.59 -> 4.69 / 9.34 / 4.07 mm. Off (1) by default and in every preset: on the
-    suite's renders, whose simulated bias follows the calibrated walk, the looser bias takes up
-    part of a monocular scale error instead (keyframes, offline: room-figure8 s1 1.52 -> 10.86
-    mm, room-loop s2 0.41 -> 0.77; BENCHMARKS.md, v101mono18)."""
+    / 14.99 / 9.59 -> 4.69 / 9.34 / 4.07 mm. On the suite's renders, whose simulated bias
+    follows the calibrated walk, the looser bias takes up part of a monocular scale error
+    instead (keyframes, offline: room-figure8 s1 1.52 -> 10.86 mm, room-loop s2 0.41 -> 0.77;
+    BENCHMARKS.md, v101mono18). Off (1) by default; ``euroc-mono-imu`` sets 10 (the gyro's
+    stays 1) behind ``global_ba_imu_walk_gate`` 1.5, which passes V1_01's IMU and none of the
+    suite's (BENCHMARKS.md, v101loop19)."""
     global_ba_imu_gyro_walk_factor: float = bounded(1.0, gt=0)
     """The same for the gyro bias's random walk (``GlobalBaParams.imu_gyro_walk_factor``)."""
+    global_ba_imu_walk_gate: float = bounded(0.0, ge=0)
+    """With it above 0, each of the two walk factors above applies only where the back end's
+    estimates of that sensor's bias wandered at least this many times as far as the calibrated
+    random walk allows (``GlobalBaParams.imu_walk_gate``, ``slam.loop.global_ba.bias_wander``:
+    the median over keyframes of the squared change over 10 s against the walk's variance;
+    stats.json ``loop_closure.global_ba.imu_*_bias_wander`` and ``imu_*_walk_factor``); 0: they
+    always apply. ``euroc-mono-imu``: 1.5 (the fair V1_01 renders' accelerometer / gyro
+    wander 1.8-2.3 / 2.2-3.5, the suite's at most 1.05; BENCHMARKS.md, v101loop19)."""
     global_ba_fusion: bool = True
     """Before the global adjustment, match every keyframe landmark to landmark against the
     keyframes of *other passes* near its corrected pose (ORB-SLAM's loop fusion), so the

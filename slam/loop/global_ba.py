@@ -209,6 +209,11 @@ class GlobalBaParams:
     error instead where the motion is slow and smooth (BENCHMARKS.md, v101mono18)."""
     imu_gyro_walk_factor: float = 1.0
     """The same for the gyro bias's random walk."""
+    imu_walk_gate: float = 0.0
+    """With it above 0, each of those factors applies only where the back end's estimates of
+    that sensor's bias (``inertial``) wandered at least this many times as far as its
+    calibrated random walk allows (:func:`bias_wander`); elsewhere the calibrated walk stays.
+    0: the factors always apply."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -239,6 +244,10 @@ class GlobalBaResult:
     """The IMU correction matrices used in the second round (``imu_refit``; a sensor whose
     fit was not certain enough stays the identity), or None."""
     imu_scale_std: tuple[float, float] = (0.0, 0.0)
+    imu_bias_wander: tuple[float, float] | None = None
+    """(accelerometer, gyro) :func:`bias_wander` of the input, when ``imu_walk_gate`` asked."""
+    imu_walk_factors: tuple[float, float] = (1.0, 1.0)
+    """(accelerometer, gyro) random-walk factors the IMU factors used."""
     """The fit's largest scale-factor standard deviation, gyro and accelerometer."""
 
     def summary(self) -> dict[str, float | int]:
@@ -272,6 +281,12 @@ class GlobalBaResult:
                     out[f"imu_{name}_scale_{axis}"] = round(float(v), 6)
             out["imu_gyro_scale_std"] = round(self.imu_scale_std[0], 6)
             out["imu_accel_scale_std"] = round(self.imu_scale_std[1], 6)
+        if self.imu_bias_wander is not None:
+            out["imu_accel_bias_wander"] = round(self.imu_bias_wander[0], 4)
+            out["imu_gyro_bias_wander"] = round(self.imu_bias_wander[1], 4)
+        if self.imu_bias_wander is not None or self.imu_walk_factors != (1.0, 1.0):
+            out["imu_accel_walk_factor"] = self.imu_walk_factors[0]
+            out["imu_gyro_walk_factor"] = self.imu_walk_factors[1]
         return out
 
 
@@ -370,11 +385,19 @@ def global_bundle_adjustment(
     their odometry edge (``imu_odometry_edges``)."""
     p = params or GlobalBaParams()
     t0 = time.perf_counter()
-    if imu is not None and (p.imu_accel_walk_factor != 1.0 or p.imu_gyro_walk_factor != 1.0):
+    accel_factor, gyro_factor = p.imu_accel_walk_factor, p.imu_gyro_walk_factor
+    wander = None
+    if imu is not None and inertial and p.imu_walk_gate > 0:
+        wander = bias_wander(inertial, imu)
+        if wander is None or wander[0] < p.imu_walk_gate:
+            accel_factor = 1.0
+        if wander is None or wander[1] < p.imu_walk_gate:
+            gyro_factor = 1.0
+    if imu is not None and (accel_factor != 1.0 or gyro_factor != 1.0):
         imu = dataclasses.replace(
             imu,
-            accel_random_walk=imu.accel_random_walk * p.imu_accel_walk_factor,
-            gyro_random_walk=imu.gyro_random_walk * p.imu_gyro_walk_factor,
+            accel_random_walk=imu.accel_random_walk * accel_factor,
+            gyro_random_walk=imu.gyro_random_walk * gyro_factor,
         )
     kf_ids = sorted(k for k in world_from_body if k in observations)
     cams = calib.cameras[:2]
@@ -687,7 +710,45 @@ def global_bundle_adjustment(
         imu_factors=len(links),
         imu_intrinsics=fitted,
         imu_scale_std=scale_std,
+        imu_bias_wander=wander,
+        imu_walk_factors=(accel_factor, gyro_factor),
     )
+
+
+BIAS_WANDER_LAG_S = 10.0
+"""The time over which :func:`bias_wander` compares bias estimates: long enough for the back
+end's smoothing of its estimates (its window, 2-3 s) to matter little."""
+
+
+def bias_wander(
+    inertial: Mapping[int, KeyframeInertial],
+    imu: ImuCalibration,
+    lag_s: float = BIAS_WANDER_LAG_S,
+) -> tuple[float, float] | None:
+    """How far the back end's bias estimates wandered, against the calibrated random walks:
+    (accelerometer, gyro), each the median over keyframes at t of |b(t') - b(t)|^2 /
+    (3 q^2 (t' - t)), t' the first keyframe at least ``lag_s`` later and q the walk's density.
+    A bias that follows its calibrated walk gives about 0.8 (the median of a chi-square with
+    3 degrees of freedom, over 3); the back end's estimates, smoothed by that walk's model,
+    give less where the data agrees with it (the suite's renders: 0.5-1.2). An IMU whose bias
+    wanders further gives more (the real V1_01 IMU's on the fair renders: 2.1 and 2.7-3.1).
+    The median: a back end's restart (its biases start over) makes a few large steps. None
+    without a keyframe ``lag_s`` after another."""
+    ks = sorted(inertial)
+    t_s = np.array([inertial[k].t_ns for k in ks], dtype=np.int64) * 1e-9
+    later = np.searchsorted(t_s, t_s + lag_s)
+    ok = later < len(ks)
+    if not ok.any():
+        return None
+    dt = t_s[later[ok]] - t_s[ok]
+    out = []
+    for q, bias in (
+        (imu.accel_random_walk, np.array([inertial[k].bias_accel_m_s2 for k in ks])),
+        (imu.gyro_random_walk, np.array([inertial[k].bias_gyro_rad_s for k in ks])),
+    ):
+        step2 = np.sum((bias[later[ok]] - bias[ok]) ** 2, axis=1)
+        out.append(float(np.median(step2 / (3.0 * q**2 * dt))))
+    return out[0], out[1]
 
 
 def _rotation_only(info_g2o: np.ndarray) -> np.ndarray:
