@@ -216,3 +216,28 @@ def test_unrefined_landmarks_are_triangulated_again_while_the_back_end_is_late(s
         assert np.median(second[1:]) < 0.25 * np.median(first[1:])
     else:
         assert np.array_equal(second[1:], first[1:])
+
+
+@pytest.mark.parametrize("late", [False, True])
+def test_pnp_outliers_keep_their_tracks_only_if_unrefined_while_the_back_end_is_late(scene, late):
+    """Of three PnP outliers: an unrefined landmark's, a refined one's (its position came from
+    the back end) and one found again in the map. On time, all three tracks end; a keyframe
+    late, only the unrefined landmark's track is kept (its position, not its track, is what
+    is likely wrong)."""
+    mono, _, _ = scene
+    read = [1]
+    fe = MonoFrontEnd(
+        mono,
+        FrontendConfig(mono_late_estimate_keyframes=1),
+        estimate_source=lambda: Estimate.pose_only(0, read[0], np.eye(4), False),
+    )
+    fe.next_keyframe_id = 3  # keyframes 0-2 made: an estimate of keyframe 1 is one behind
+    read[0] = 1 if late else 2
+    fe.estimate_source()
+    assert fe._backend_late() == late
+    for lid in (10, 11, 12):
+        fe.landmarks[lid] = np.array([0.0, 0.0, 3.0])
+    fe._adopt_positions(np.array([11]), np.array([[0.0, 0.1, 3.0]]))
+    fe.reobserved_ids.add(12)
+    dropped = fe._dropped_outliers(np.array([10, 11, 12]), np.array([4, 7, 8]))
+    assert dropped.tolist() == ([7, 8] if late else [4, 7, 8])
