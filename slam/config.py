@@ -234,17 +234,14 @@ class FrontendConfig:
     # bounds: 0 is off; any lag of a keyframe or more counts at 1
     mono_late_estimate_keyframes: int = bounded(0, ge=0)
     """The back end counts as late when the newest estimate the front end has read is of a
-    keyframe this many keyframes or more before the front end's newest (0: never). The back
-    end's estimates are what refines the front end's landmarks: a late one leaves them at the
-    front end's own two-view triangulations from a degree of parallax, PnP cut their (good)
-    tracks as the baseline grew, and a freshly started smoother, short of long tracks, lost
-    its scale (a loaded machine; ``player.sequential_estimate_delay_ms``). While it is late,
-    the landmarks no estimate has refined yet are refined here instead: triangulated again at
-    each keyframe from their first view where the rays now differ by more than at their last
-    triangulation (the same reprojection check as a new landmark), and a PnP outlier among
-    them keeps its track (left out of the frame's pose; its observations still reach the back
-    end). A sequential run without a delay never lags, so it is unchanged (BENCHMARKS.md,
-    monolag19)."""
+    keyframe this many keyframes or more before the front end's newest (0: never). While it
+    is late, a PnP outlier whose landmark position is still the front end's own two-view
+    triangulation (no back-end estimate has replaced it yet) keeps its track: it is left out
+    of the frame's pose, and its observations still reach the back end. The position, not the
+    track, is what is likely wrong; dropping such tracks cut a freshly started monocular
+    smoother's tracks short when its estimates came late (a loaded machine;
+    ``player.sequential_estimate_delay_ms``), and it could lose its scale. A sequential run
+    without a delay is never late: unchanged (BENCHMARKS.md, monolag19)."""
 
 
 @dataclass

@@ -156,68 +156,6 @@ def test_candidates_move_with_the_map_and_lost_ones_are_forgotten(scene):
     assert set(fe._cand_cam_from_world) == {kf for _, kf in fe._cand.values()} == {1}
 
 
-def _keyframe_at(fe, frame, intr, body_from_cam, pts_world, side_m, noise_px, rng):
-    """A keyframe ``side_m`` to the side of the first, the tracks (one per row of
-    ``pts_world``) at the true points' projections with ``noise_px`` of pixel noise."""
-    pose = make_transform(np.eye(3), np.array([0.0, side_m, 0.0]))
-    fe.world_from_body = pose
-    px = intr.project(transform_points(invert_transform(pose @ body_from_cam), pts_world))
-    fe.px = (px + rng.normal(0.0, noise_px, px.shape)).astype(np.float32)
-    fe._make_keyframe(dataclasses.replace(frame, t_ns=int(side_m * 1e9) + 1), frame.left)
-
-
-@pytest.mark.parametrize("late", [False, True])
-def test_unrefined_landmarks_are_triangulated_again_while_the_back_end_is_late(scene, late):
-    """Candidates made landmarks over a short baseline (0.06 m, 0.3 px of noise: depths off by
-    centimetres), then a keyframe 0.5 m away. With the back end's estimate of the keyframe
-    before it read (on time), the landmarks stay as they are (the back end refines them). With
-    only the first keyframe's read (a keyframe late, ``mono_late_estimate_keyframes`` 1), the
-    front end triangulates them again over the longer baseline: their error against the truth
-    drops several-fold; a landmark whose position came from the back end keeps it. Without
-    this the front end's landmarks waited for the late estimates, and PnP cut their tracks."""
-    mono, intr, _ = scene
-    read = [0]  # the keyframe of the back end's newest estimate
-    fe = MonoFrontEnd(
-        mono,
-        FrontendConfig(mono_late_estimate_keyframes=1),
-        estimate_source=lambda: Estimate.pose_only(0, read[0], np.eye(4), False),
-    )
-    rng = np.random.default_rng(5)
-    image = cv2.GaussianBlur(rng.uniform(0, 255, (intr.height, intr.width)), (0, 0), 2.0)
-    frame = StereoFrame(t_ns=0, left=image.astype(np.uint8), right=None)
-    body_from_cam = mono.cameras[0].body_from_cam
-    fe.world_from_body = np.eye(4)
-    fe._make_keyframe(frame, frame.left)
-    n = len(fe.ids)
-    rays = np.hstack([fe._normalised(fe.px), np.ones((n, 1))])
-    pts_world = transform_points(body_from_cam, rays * rng.uniform(2.0, 3.0, (n, 1)))
-    _keyframe_at(fe, frame, intr, body_from_cam, pts_world, 0.06, 0.3, rng)
-    # no track was dropped: each row is still its first-keyframe point, a landmark where its
-    # rays differed by a degree
-    assert len(fe.ids) >= n and set(fe.landmarks) == set(fe.ids[:n][fe.ids[:n] >= 0].tolist())
-    fe.px, fe.ids, fe.ages = fe.px[:n], fe.ids[:n], fe.ages[:n]  # the new candidates go
-    made = np.flatnonzero(fe.ids >= 0)
-    lids, truth = fe.ids[made], pts_world[made]
-    assert len(made) > 50
-
-    def errors() -> np.ndarray:
-        return np.array([np.linalg.norm(fe.landmarks[i] - p) for i, p in zip(lids, truth)])
-
-    first = errors()
-    assert np.median(first) > 0.02
-    # the first landmark's position comes from the back end (the truth moved 1 cm)
-    fe._adopt_positions(lids[:1], truth[:1] + 0.01)
-    read[0] = 0 if late else 1
-    fe.estimate_source()  # read as the next frame would
-    _keyframe_at(fe, frame, intr, body_from_cam, pts_world, 0.5, 0.3, rng)
-    second = errors()
-    assert np.allclose(fe.landmarks[int(lids[0])], truth[0] + 0.01)
-    if late:
-        assert np.median(second[1:]) < 0.25 * np.median(first[1:])
-    else:
-        assert np.array_equal(second[1:], first[1:])
-
-
 @pytest.mark.parametrize("late", [False, True])
 def test_pnp_outliers_keep_their_tracks_only_if_unrefined_while_the_back_end_is_late(scene, late):
     """Of three PnP outliers: an unrefined landmark's, a refined one's (its position came from

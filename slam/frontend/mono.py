@@ -137,12 +137,10 @@ class MonoFrontEnd(FrontEnd):
         self.scale_adopted = 1.0
         self._wait_state = ""
         # ``mono_late_estimate_keyframes``: the keyframe of the newest estimate read (-1:
-        # none), the tracked landmarks whose positions came from the back end (the others are
-        # our own two-view triangulations), and for the others: landmark id -> (normalised ray
-        # at its first view, keyframe born at, ray angle of its position in degrees)
+        # none), and the landmarks whose positions came from the back end (the others are
+        # still our own two-view triangulations)
         self._estimate_keyframe_id = -1
         self._refined_ids: set[int] = set()
-        self._unrefined_birth: dict[int, tuple[np.ndarray, int, float]] = {}
 
     # ------------------------------------------------------------------ feedback
     def _gated_estimate(self) -> Estimate | None:
@@ -180,10 +178,7 @@ class MonoFrontEnd(FrontEnd):
     def _adopt_positions(self, lids: np.ndarray, positions_world: np.ndarray) -> None:
         super()._adopt_positions(lids, positions_world)
         n = min(len(lids), len(positions_world))
-        adopted = [i for i in lids[:n].tolist() if i in self.landmarks]
-        self._refined_ids.update(adopted)
-        for i in adopted:
-            self._unrefined_birth.pop(i, None)
+        self._refined_ids.update(i for i in lids[:n].tolist() if i in self.landmarks)
 
     def _dropped_outliers(self, lids: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """While the back end is late (``mono_late_estimate_keyframes``), only the outliers
@@ -204,8 +199,6 @@ class MonoFrontEnd(FrontEnd):
     def _retire(self, lids: list[int]) -> None:
         super()._retire(lids)
         self._refined_ids.difference_update(lids)
-        for i in lids:
-            self._unrefined_birth.pop(i, None)
 
     # ------------------------------------------------------------------ scale
     def _adopt_scale(self, est: Estimate, fe_pose: np.ndarray) -> np.ndarray:
@@ -274,7 +267,6 @@ class MonoFrontEnd(FrontEnd):
         self.ages = np.zeros(0, np.int64)
         self._retire(list(self.landmarks))
         self._cand.clear()
-        self._unrefined_birth.clear()
         self._cand_cam_from_world.clear()
         self._anchor_kf = -1
         self.templates.clear()
@@ -418,8 +410,6 @@ class MonoFrontEnd(FrontEnd):
         kf_id = self.next_keyframe_id
         world_from_cam = self.world_from_body @ self.body_from_cam0
         cam_from_world = invert_transform(world_from_cam)
-        if self._backend_late():
-            self._retriangulate_unrefined(cam_from_world, world_from_cam)
         self._triangulate_candidates(frame, cam_from_world, world_from_cam, kf_id)
         new_px = detect_features(frame.left, self.px, cfg).astype(np.float32)
         cids = np.arange(self._next_candidate, self._next_candidate - len(new_px), -1)
@@ -462,47 +452,6 @@ class MonoFrontEnd(FrontEnd):
             metric=self.reframed,
         )
 
-    def _keep_birth_poses(self) -> None:
-        """Forget the first-view poses no candidate or unrefined landmark needs any more."""
-        alive = {kf for _, kf in self._cand.values()}
-        alive.update(kf for _, kf, _ in self._unrefined_birth.values())
-        self._cand_cam_from_world = {
-            k: c for k, c in self._cand_cam_from_world.items() if k in alive
-        }
-
-    def _retriangulate_unrefined(
-        self, cam_from_world: np.ndarray, world_from_cam: np.ndarray
-    ) -> None:
-        """The back end is late (``mono_late_estimate_keyframes``): the tracked landmarks
-        still at our own triangulation, triangulated again from their first view and this
-        keyframe's where the rays now differ by more than at their last triangulation and both
-        views fit."""
-        births = self._unrefined_birth
-        tracked = set(self.ids.tolist())
-        for lid in [i for i in births if i not in tracked or i not in self.landmarks]:
-            del births[lid]
-        rows = np.array([r for r, i in enumerate(self.ids.tolist()) if i in births], dtype=np.int64)
-        if len(rows) == 0:
-            return
-        lids = self.ids[rows].tolist()
-        info = [births[i] for i in lids]
-        cam_a = np.array([self._cand_cam_from_world[b[1]] for b in info])
-        rays_a = np.array([b[0] for b in info])
-        before = np.array([b[2] for b in info])
-        rays_b = self._normalised(self.px[rows])
-        pts = triangulate_two_view(cam_a, cam_from_world, rays_a, rays_b)
-        f = float(self.cam0.fx)
-        ea, za = _reprojection_px(cam_a, pts, rays_a, f)
-        eb, zb = _reprojection_px(cam_from_world, pts, rays_b, f)
-        angle = _ray_angle_deg(np.array([invert_transform(c) for c in cam_a]), world_from_cam, pts)
-        limit = self.cfg.mono_max_reprojection_px
-        better = (za > 0) & (zb > 0) & (ea < limit) & (eb < limit) & (angle > before)
-        better &= np.isfinite(pts).all(axis=1)
-        for k in np.flatnonzero(better).tolist():
-            lid = lids[k]
-            self.landmarks[lid] = pts[k]
-            births[lid] = (info[k][0], info[k][1], float(angle[k]))
-
     def _triangulate_candidates(
         self,
         frame: StereoFrame,
@@ -518,7 +467,7 @@ class MonoFrontEnd(FrontEnd):
         cids = self.ids[rows].tolist()
         self._cand = {c: self._cand[c] for c in cids}
         if len(rows) == 0:
-            self._keep_birth_poses()
+            self._cand_cam_from_world.clear()
             return
         births = [self._cand[c] for c in cids]
         born = np.array([b[1] for b in births])
@@ -544,17 +493,16 @@ class MonoFrontEnd(FrontEnd):
         new_rows = rows[made]
         new_ids = np.arange(self.next_landmark_id, self.next_landmark_id + len(new_rows))
         self.next_landmark_id += len(new_ids)
-        for r, lid, p, a in zip(
-            new_rows.tolist(), new_ids.tolist(), pts[made], angle[made].tolist(), strict=True
-        ):
-            ray, born_kf = self._cand.pop(int(self.ids[r]))
-            if cfg.mono_late_estimate_keyframes > 0 and self.has_backend:
-                self._unrefined_birth[lid] = (ray, born_kf, a)
+        for r, lid, p in zip(new_rows.tolist(), new_ids.tolist(), pts[made], strict=True):
+            del self._cand[int(self.ids[r])]
             self.ids[r] = lid
             self.landmarks[lid] = p
         for r in rows[~keep[rows]].tolist():
             self._cand.pop(int(self.ids[r]), None)
-        self._keep_birth_poses()
+        alive = {kf for _, kf in self._cand.values()}
+        self._cand_cam_from_world = {
+            k: c for k, c in self._cand_cam_from_world.items() if k in alive
+        }
         if len(new_ids):
             self.landmark_map.add(
                 new_ids,
