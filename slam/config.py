@@ -231,17 +231,6 @@ class FrontendConfig:
     """Two-view triangulation: largest reprojection error in either view, pixels."""
     mono_candidate_max_keyframes: int = bounded(6, ge=1)
     """A candidate not triangulated after this many keyframes is dropped."""
-    # bounds: 0 is off; any lag of a keyframe or more counts at 1
-    mono_late_estimate_keyframes: int = bounded(0, ge=0)
-    """The back end counts as late when the newest estimate the front end has read is of a
-    keyframe this many keyframes or more before the front end's newest (0: never). While it
-    is late, a PnP outlier whose landmark position is still the front end's own two-view
-    triangulation (no back-end estimate has replaced it yet) keeps its track: it is left out
-    of the frame's pose, and its observations still reach the back end. The position, not the
-    track, is what is likely wrong; dropping such tracks cut a freshly started monocular
-    smoother's tracks short when its estimates came late (a loaded machine;
-    ``player.sequential_estimate_delay_ms``), and it could lose its scale. A sequential run
-    without a delay is never late: unchanged (BENCHMARKS.md, monolag19)."""
 
 
 @dataclass
@@ -361,15 +350,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         # only, the initialisation came 0.15 s later in test_mono_pipeline), and no predicted
         # start: a landmark's track started at its projection from the back end's estimate
         # on one level follows that estimate where it is wrong (room-figure8 seed 1 at
-        # --speed max, live 31-166 -> 14-17 mm; BENCHMARKS.md, fifteenth session); its own
-        # landmarks refined here while the back end's estimates are a keyframe late or more
-        # (room-figure8 seed 1 with estimates 1 s late: live 728 -> TBD mm; sequential runs
-        # without a delay byte-identical; BENCHMARKS.md, monolag19)
-        "frontend": {
-            "klt_backward_levels": 1,
-            "klt_predicted_levels": 3,
-            "mono_late_estimate_keyframes": 1,
-        },
+        # --speed max, live 31-166 -> 14-17 mm; BENCHMARKS.md, fifteenth session)
+        "frontend": {"klt_backward_levels": 1, "klt_predicted_levels": 3},
         # the global adjustment's IMU factors by the midpoint rule: the map's scale is the
         # IMU's alone (loop-closed scale error room-figure8 / room-loop; BENCHMARKS.md, mono18h)
         # and the odometry edges no IMU factor replaces hold only their rotation (their

@@ -13,7 +13,7 @@ import pytest
 from datasets.rigs import euroc_like_calibration
 from slam.config import FrontendConfig
 from slam.core.geometry import invert_transform, make_transform, transform_points
-from slam.core.messages import Estimate, StereoFrame
+from slam.core.messages import StereoFrame
 from slam.frontend.mono import MonoFrontEnd, _Reference
 
 
@@ -154,28 +154,3 @@ def test_candidates_move_with_the_map_and_lost_ones_are_forgotten(scene):
     # second's new candidates are the ones remembered
     assert set(fe._cand) == {int(i) for i in fe.ids if i <= -2}
     assert set(fe._cand_cam_from_world) == {kf for _, kf in fe._cand.values()} == {1}
-
-
-@pytest.mark.parametrize("late", [False, True])
-def test_pnp_outliers_keep_their_tracks_only_if_unrefined_while_the_back_end_is_late(scene, late):
-    """Of three PnP outliers: an unrefined landmark's, a refined one's (its position came from
-    the back end) and one found again in the map. On time, all three tracks end; a keyframe
-    late, only the unrefined landmark's track is kept (its position, not its track, is what
-    is likely wrong)."""
-    mono, _, _ = scene
-    read = [1]
-    fe = MonoFrontEnd(
-        mono,
-        FrontendConfig(mono_late_estimate_keyframes=1),
-        estimate_source=lambda: Estimate.pose_only(0, read[0], np.eye(4), False),
-    )
-    fe.next_keyframe_id = 3  # keyframes 0-2 made: an estimate of keyframe 1 is one behind
-    read[0] = 1 if late else 2
-    fe.estimate_source()
-    assert fe._backend_late() == late
-    for lid in (10, 11, 12):
-        fe.landmarks[lid] = np.array([0.0, 0.0, 3.0])
-    fe._adopt_positions(np.array([11]), np.array([[0.0, 0.1, 3.0]]))
-    fe.reobserved_ids.add(12)
-    dropped = fe._dropped_outliers(np.array([10, 11, 12]), np.array([4, 7, 8]))
-    assert dropped.tolist() == ([7, 8] if late else [4, 7, 8])

@@ -136,11 +136,6 @@ class MonoFrontEnd(FrontEnd):
         self._cand_cam_from_world: dict[int, np.ndarray] = {}
         self.scale_adopted = 1.0
         self._wait_state = ""
-        # ``mono_late_estimate_keyframes``: the keyframe of the newest estimate read (-1:
-        # none), and the landmarks whose positions came from the back end (the others are
-        # still our own two-view triangulations)
-        self._estimate_keyframe_id = -1
-        self._refined_ids: set[int] = set()
 
     # ------------------------------------------------------------------ feedback
     def _gated_estimate(self) -> Estimate | None:
@@ -149,8 +144,6 @@ class MonoFrontEnd(FrontEnd):
         factor's point from a short baseline can be far off in depth, and a few of them
         adopted as our landmarks pull PnP away."""
         est = self._source()
-        if est is not None:
-            self._estimate_keyframe_id = est.keyframe_id
         if est is None or not est.initialized or not len(est.landmark_ids):
             return est
         cached = self._gate_cache
@@ -174,31 +167,6 @@ class MonoFrontEnd(FrontEnd):
         )
         self._gate_cache = (est, gated)
         return gated
-
-    def _adopt_positions(self, lids: np.ndarray, positions_world: np.ndarray) -> None:
-        super()._adopt_positions(lids, positions_world)
-        n = min(len(lids), len(positions_world))
-        self._refined_ids.update(i for i in lids[:n].tolist() if i in self.landmarks)
-
-    def _dropped_outliers(self, lids: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        """While the back end is late (``mono_late_estimate_keyframes``), only the outliers
-        whose positions came from the back end, or that were found again in the map (a wrong
-        match is likelier there than a wrong position), end their tracks."""
-        if len(rows) == 0 or not self._backend_late():
-            return rows
-        refined, found = self._refined_ids, self.reobserved_ids
-        return rows[np.array([i in refined or i in found for i in lids.tolist()], dtype=bool)]
-
-    def _backend_late(self) -> bool:
-        """Whether the newest estimate read is ``mono_late_estimate_keyframes`` or more
-        keyframes behind our newest keyframe."""
-        lag = self.cfg.mono_late_estimate_keyframes
-        behind = self.next_keyframe_id - 1 - self._estimate_keyframe_id
-        return lag > 0 and self.has_backend and behind >= lag
-
-    def _retire(self, lids: list[int]) -> None:
-        super()._retire(lids)
-        self._refined_ids.difference_update(lids)
 
     # ------------------------------------------------------------------ scale
     def _adopt_scale(self, est: Estimate, fe_pose: np.ndarray) -> np.ndarray:

@@ -230,16 +230,12 @@ class FrontEnd:
         self.corrections.append(FrontendCorrection(est.t_ns, correction, not self.reframed))
         self.reframed = True
         self._move_world(correction)
-        self._adopt_positions(est.landmark_ids, est.landmark_positions_world)
-
-    def _adopt_positions(self, lids: np.ndarray, positions_world: np.ndarray) -> None:
-        """The back end's positions (world) of landmarks ``lids`` replace ours."""
-        positions = np.asarray(positions_world, dtype=float)
+        positions = np.asarray(est.landmark_positions_world, dtype=float)
         landmarks = self.landmarks
-        for row, lid in enumerate(lids.tolist()[: len(positions)]):
+        for row, lid in enumerate(est.landmark_ids.tolist()[: len(positions)]):
             if lid in landmarks:
                 landmarks[lid] = positions[row]
-        self.landmark_map.update_positions(lids, positions_world)
+        self.landmark_map.update_positions(est.landmark_ids, est.landmark_positions_world)
 
     def _adopt_scale(self, est: Estimate, fe_pose: np.ndarray) -> np.ndarray:
         """Before the back end's world is adopted: our pose of its keyframe in the scale of
@@ -527,7 +523,7 @@ class FrontEnd:
         # drop PnP outliers from the tracks
         keep = np.ones(len(self.ids), dtype=bool)
         outliers = np.setdiff1d(np.arange(len(idx)), inl)
-        keep[idx[self._dropped_outliers(self.ids[idx[outliers]], outliers)]] = False
+        keep[idx[outliers]] = False
         self.px, self.ids, self.ages = self.px[keep], self.ids[keep], self.ages[keep]
         self.prev_world_from_body = self.world_from_body
         self.prev_dt_ns = frame.t_ns - self.t_prev_ns
@@ -604,11 +600,6 @@ class FrontEnd:
                 guess_to=None if gyro_guess is None else gyro_guess[again],
             )
         return px, ok
-
-    def _dropped_outliers(self, lids: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        """Of the PnP outliers (landmark ids ``lids``, at ``rows``), the rows whose tracks end
-        here (stereo: all of them; ``MonoFrontEnd`` keeps some)."""
-        return rows
 
     def _pnp_ransac(
         self, obj: np.ndarray, img: np.ndarray, guess_world_from_body: np.ndarray
