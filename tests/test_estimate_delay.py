@@ -7,11 +7,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from datasets.memory import InMemorySequence
 from datasets.rigs import euroc_like_calibration
 from slam.backend.config import BackendConfig
+from slam.config import preset_config
+from slam.core.errors import SlamError
 from slam.core.messages import BackendOutput, Estimate, ImuBatch
 from slam.runtime.backend import BackendStage
 from slam.runtime.stage import Latest
+from slam.runtime.wiring import run_slam
 
 MS = 1_000_000
 
@@ -76,3 +80,15 @@ def test_a_delay_is_for_sequential_runs_only():
         BackendStage(
             euroc_like_calibration(), BackendConfig(), Latest(), True, False, estimate_delay_ns=MS
         )
+
+
+def test_a_concurrent_run_with_a_delay_is_a_clear_error():
+    """A concurrent run's estimates are as late as its machine makes them: the key is refused
+    before anything runs."""
+    calib = euroc_like_calibration()
+    blank = [np.zeros((480, 752), np.uint8)] * 2
+    seq = InMemorySequence("blank", calib, np.array([0, 50 * MS]), blank, blank)
+    cfg = preset_config("euroc-stereo-imu")
+    cfg.player.sequential_estimate_delay_ms = 500.0
+    with pytest.raises(SlamError, match="sequential runs only"):
+        run_slam(seq, cfg, None, progress=False)
