@@ -247,6 +247,14 @@ class PlayerConfig:
     """Playback speed relative to sensor time; 0 means as fast as the pipeline takes it."""
     sequential: bool = False
     """Run every stage in one thread in time order (deterministic)."""
+    # bounds: 0 is off; a few seconds is already a back end that has stopped keeping up
+    sequential_estimate_delay_ms: float = bounded(0.0, ge=0, le=5000)
+    """Sequential runs only (a concurrent run's estimates are as late as its machine makes
+    them): the back end's estimate of a keyframe reaches the front end once this much sensor
+    time has passed since the keyframe's stamp, at the first IMU reading at or after it (the
+    outputs to the recorder and loop closure are not delayed). Reproduces deterministically
+    what a loaded machine does to the front end, whose back end delivers late. 0 (off): at the
+    next frame, as a sequential run always did; under one frame period acts like 0."""
     # bounds: 0 would make the queue unbounded (frames are never dropped)
     frame_queue_size: int = bounded(2, ge=1)
     """Frames waiting for the front end; when full in real-time playback, frames are dropped."""

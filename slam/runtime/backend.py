@@ -14,6 +14,7 @@ import dataclasses
 import logging
 import threading
 import time
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -136,9 +137,14 @@ class BackendStage(ProcessStage):
         threaded: bool,
         use_process: bool,
         publish_inertial: bool = False,
+        estimate_delay_ns: int = 0,
     ):
         """``publish_inertial``: the outputs carry the back end's final keyframe states and
-        their IMU readings (``BackendOutput.inertial``: ``loop.global_ba_imu``)."""
+        their IMU readings (``BackendOutput.inertial``: ``loop.global_ba_imu``).
+        ``estimate_delay_ns`` (sequential runs: ``player.sequential_estimate_delay_ms``): each
+        estimate reaches ``latest`` (the front end) only once the IMU stream has passed its
+        keyframe's stamp by this much sensor time, as a loaded machine's back end would
+        deliver it; the emitted outputs are not delayed. 0: at once."""
         super().__init__(
             "backend",
             4000,
@@ -157,6 +163,10 @@ class BackendStage(ProcessStage):
         self._pending: list[ImuBatch] = []
         self._pending_samples = 0
         self._lock = threading.Lock()
+        if estimate_delay_ns and threaded:
+            raise ValueError("a delayed estimate is for sequential runs only")
+        self.estimate_delay_ns = estimate_delay_ns
+        self._held: deque[Estimate] = deque()  # estimates not yet due (estimate_delay_ns)
 
     def on_output(self, item: Any) -> None:
         if not isinstance(item, BackendOutput):
@@ -170,8 +180,17 @@ class BackendStage(ProcessStage):
                     self.keyframe_poses[kid] = pose
                 self.biases.append((est.t_ns, est.bias_gyro_rad_s, est.bias_accel_m_s2))
         if item.estimate is not None:
-            self.latest.set(item.estimate)
+            if self.estimate_delay_ns > 0:
+                self._held.append(item.estimate)
+            else:
+                self.latest.set(item.estimate)
         self.emit(item)
+
+    def _release_held(self, now_ns: int | None) -> None:
+        """Publish the held estimates due at sensor time ``now_ns`` (None: all), in order."""
+        held = self._held
+        while held and (now_ns is None or held[0].t_ns + self.estimate_delay_ns <= now_ns):
+            self.latest.set(held.popleft())
 
     def biases_at(self, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The gyro (rad/s) and accelerometer (m/s^2) biases of the first initialised estimate
@@ -210,6 +229,8 @@ class BackendStage(ProcessStage):
                     self._flush_imu()
             else:
                 self.send(msg)
+            if self._held and len(msg):
+                self._release_held(int(msg.t_ns[-1]))
         elif isinstance(msg, Keyframe):
             if self.use_process:
                 self._flush_imu()
@@ -224,6 +245,7 @@ class BackendStage(ProcessStage):
         if self.use_process and not self.interrupted:
             self._flush_imu()
         self.send(BackendFlush())  # keyframes held for the time offset
+        self._release_held(None)  # the run is over: the front end's finish() sees the last
         self.end_worker()
 
     def estimate(self) -> Estimate | None:

@@ -120,6 +120,7 @@ def build(seq: Sequence, cfg: SlamConfig, session: ViewerSession | None) -> Pipe
             threaded,
             cfg.backend_process,
             publish_inertial=loop is not None and cfg.loop.global_ba and cfg.loop.global_ba_imu,
+            estimate_delay_ns=round(cfg.player.sequential_estimate_delay_ms * 1e6),
         )
         p.imu_consumers.append(p.backend)
     if cfg.mapping.enabled:
@@ -185,6 +186,11 @@ def run_slam(
     elif not seq.calibration.is_stereo:
         raise SlamError(
             f"{seq.name}: one camera: the pipeline needs cam0 and cam1, or --config euroc-mono-imu"
+        )
+    if cfg.player.sequential_estimate_delay_ms > 0 and not cfg.player.sequential:
+        raise SlamError(
+            "config key player.sequential_estimate_delay_ms is for sequential runs only "
+            "(--sequential)"
         )
     control = control or RunControl()
     with handle_stop_signals(control):
