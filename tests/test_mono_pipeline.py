@@ -15,18 +15,34 @@ from slam.evaluation.align import umeyama
 from slam.runtime.wiring import run_slam
 
 
-@pytest.fixture(scope="module")
-def mono_run(tmp_path_factory):
+def _preset_run(out, profile: str, duration_s: float, seed: int):
+    """The preset, sequential, on a synthetic ``profile`` moving from the first frame."""
     from datasets.synth import make_synthetic_sequence
 
     seq = in_memory(
-        make_synthetic_sequence(profile="figure8", duration_s=6.0, seed=3, moving_start=True)
+        make_synthetic_sequence(
+            profile=profile, duration_s=duration_s, seed=seed, moving_start=True
+        )
     )
     cfg = preset_config("euroc-mono-imu")
     cfg.player.speed = 0.0
     cfg.player.sequential = True
-    out = tmp_path_factory.mktemp("mono")
-    return seq, run_slam(seq, cfg, out, progress=False)
+    return seq, cfg, run_slam(seq, cfg, out, progress=False)
+
+
+def _live_sim3_scale(seq, res) -> float:
+    """Sim(3) scale of the live trajectory against the truth at its stamps."""
+    gt = seq.ground_truth
+    idx = np.clip(np.searchsorted(gt.t_ns, res.trajectory.t_ns), 0, len(gt.t_ns) - 1)
+    assert np.abs(gt.t_ns[idx] - res.trajectory.t_ns).max() < 1_000_000
+    _, _, scale = umeyama(res.trajectory.positions_m, gt.positions_m[idx], with_scale=True)
+    return float(scale)
+
+
+@pytest.fixture(scope="module")
+def mono_run(tmp_path_factory):
+    seq, _, res = _preset_run(tmp_path_factory.mktemp("mono"), "figure8", 6.0, 3)
+    return seq, res
 
 
 def test_mono_run_initialises_and_is_metric(mono_run):
@@ -41,28 +57,15 @@ def test_mono_run_initialises_and_is_metric(mono_run):
     t0 = seq.frame_times_ns()[0] + int(init_s * 1e9)
     after = int((seq.frame_times_ns() > t0).sum())
     assert len(res.trajectory.t_ns) >= 0.95 * after
-    gt = seq.ground_truth
-    idx = np.clip(np.searchsorted(gt.t_ns, res.trajectory.t_ns), 0, len(gt.t_ns) - 1)
-    assert np.abs(gt.t_ns[idx] - res.trajectory.t_ns).max() < 1_000_000
-    _, _, scale = umeyama(res.trajectory.positions_m, gt.positions_m[idx], with_scale=True)
+    scale = _live_sim3_scale(seq, res)
     # measured 1.059 (the start's alignment on 1.5 s of smooth motion; BENCHMARKS.md)
     assert abs(scale - 1.0) < 0.08, scale
 
 
 @pytest.fixture(scope="module")
 def slow_mono_run(tmp_path_factory):
-    """The preset on room-loop's slow motion (keyframes 0.25-0.5 s apart), moving from the
-    first frame."""
-    from datasets.synth import make_synthetic_sequence
-
-    seq = in_memory(
-        make_synthetic_sequence(profile="loop", duration_s=7.0, seed=2, moving_start=True)
-    )
-    cfg = preset_config("euroc-mono-imu")
-    cfg.player.speed = 0.0
-    cfg.player.sequential = True
-    out = tmp_path_factory.mktemp("mono_slow")
-    return seq, cfg, run_slam(seq, cfg, out, progress=False)
+    """The preset on room-loop's slow motion (keyframes 0.25-0.5 s apart)."""
+    return _preset_run(tmp_path_factory.mktemp("mono_slow"), "loop", 7.0, 2)
 
 
 def test_slow_start_is_aligned_over_time_and_its_window_starts_the_smoother(slow_mono_run):
@@ -76,10 +79,7 @@ def test_slow_start_is_aligned_over_time_and_its_window_starts_the_smoother(slow
     assert cfg.backend.mono_init_span_keyframes <= accepted[0]["keyframes"]
     assert accepted[0]["keyframes"] < cfg.backend.mono_init_keyframes
     assert b["mono_init_batch_velocity_sigma_m_s"] > 0  # the batch ran and was used
-    gt = seq.ground_truth
-    idx = np.clip(np.searchsorted(gt.t_ns, res.trajectory.t_ns), 0, len(gt.t_ns) - 1)
-    assert np.abs(gt.t_ns[idx] - res.trajectory.t_ns).max() < 1_000_000
-    _, _, scale = umeyama(res.trajectory.positions_m, gt.positions_m[idx], with_scale=True)
+    scale = _live_sim3_scale(seq, res)
     # measured 1.0029, started on 8 keyframes 2.4 s in (span alone 1.0016; without the span
     # 1.0055 on 10 keyframes 3.0 s in; BENCHMARKS.md, v101start19)
     assert abs(scale - 1.0) < 0.015, scale
