@@ -322,17 +322,18 @@ def test_batch_start_recovers_scale_and_velocity_of_the_window(seed, scale_error
 
 
 def test_start_gate_waits_for_the_keyframes_or_the_excitation():
-    """When the monocular start's alignment is tried, and under which scale-std gate: by default
-    (the preset) only from ``mono_init_keyframes`` keyframes spanning ``mono_init_min_span_s``;
-    with ``mono_init_span_s`` also from ``mono_init_span_keyframes`` once they span that long;
-    with ``mono_init_early_max_scale_std`` at every keyframe from ``mono_init_span_keyframes`` on,
-    under the stricter of the two gates."""
+    """When the monocular start's alignment is tried, and under which scale-std gate: without
+    ``mono_init_span_s`` only from ``mono_init_keyframes`` keyframes spanning
+    ``mono_init_min_span_s``; with it (the preset: 1.85 s) also from ``mono_init_span_keyframes``
+    once they span that long; with ``mono_init_early_max_scale_std`` at every keyframe from
+    ``mono_init_span_keyframes`` on, under the stricter of the two gates."""
     from slam.backend.config import BackendConfig
     from slam.backend.mono_init import start_gate
     from slam.config import preset_config
 
-    cfg = preset_config("euroc-mono-imu").backend
-    assert cfg.mono_init_early_max_scale_std == 0.0 and cfg.mono_init_span_s == 0.0
+    preset = preset_config("euroc-mono-imu").backend
+    assert preset.mono_init_early_max_scale_std == 0.0 and preset.mono_init_span_s == 1.85
+    cfg = dataclasses.replace(preset, mono_init_span_s=0.0)
     full = cfg.mono_init_max_scale_std
     assert [start_gate(n, 3.0, cfg) for n in (5, 6, 9)] == [None, None, None]
     assert start_gate(10, 3.0, cfg) == full
