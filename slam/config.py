@@ -349,7 +349,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         # live Sim(3) scale 1.0073 -> 1.0044; room-loop 3.52 -> 2.42 s (live median -7 %,
         # loop-closed 0.68 -> 0.82 mm: the batch's cost), the hall 3.42 -> 2.87 s (live +4 %,
         # loop-closed -1 %), room-figure8 and room-aggressive byte-identical (BENCHMARKS.md,
-        # v101start19)
+        # v101start19); with the map rescale and the walk gate below too, V1_01 live 22.32,
+        # loop-closed 6.98 mm (BENCHMARKS.md, seventeenth session)
         "backend": {
             "lag_s": 2.0,
             "map_landmarks": False,
@@ -369,10 +370,10 @@ PRESETS: dict[str, dict[str, Any]] = {
         # on one level follows that estimate where it is wrong (room-figure8 seed 1 at
         # --speed max, live 31-166 -> 14-17 mm; BENCHMARKS.md, fifteenth session)
         # and its landmark map scaled to the back end's where two estimates in a row find it
-        # more than 10 % off, from 20 s after the start (fair V1_01 renders, with the walk gate
-        # below, the gyro's x30 then too: live 24.64 / 47.47 / 56.88 -> 24.64 / 31.49 / 26.61 mm, loop-closed 9.13 /
-        # 8.42 / 6.00 -> 9.13 / 6.47 / 7.08; room-figure8 s11 live 49.14 -> 36.57, loop-closed
-        # 15.54 -> 14.88; the rest of the suite unchanged; BENCHMARKS.md, v101loop19)
+        # more than 10 % off, from 20 s after the start (room-figure8 s11 live 49.14 -> 36.57
+        # mm, loop-closed 15.54 -> 14.88, the rest of the suite unchanged; on the fair V1_01
+        # renders with the walk gate below, live median 47.47 -> 26.61 mm; BENCHMARKS.md,
+        # v101loop19)
         "frontend": {
             "klt_backward_levels": 1,
             "klt_predicted_levels": 3,
@@ -386,8 +387,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         # as the calibrated random walk allows (the real V1_01 IMU's on the fair renders:
         # 1.8-2.3; the suite's simulated IMU: 0.19-1.05), the adjustment's accelerometer walk
         # x10, so that its bias follows the wander instead of the map's scale (fair V1_01
-        # renders, loop-closed 14.72 / 15.02 / 12.79 -> 9.13 / 8.42 / 6.00 mm with the gyro's
-        # x30 too; the suite unchanged: the gate passes none of it). Not the gyro's: realistic
+        # renders with the map rescale above, loop-closed median 14.72 -> 7.25 mm; the suite
+        # unchanged: the gate passes none of it). Not the gyro's: realistic
         # room-figure8 s1's gyro wander is 2.4, and its x30 took that run's loop-closed ATE
         # 3.57 -> 5.12 mm, for 2 % on V1_01 (BENCHMARKS.md, v101loop19)
         "loop": {
