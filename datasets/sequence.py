@@ -99,6 +99,11 @@ class Sequence(ABC):
     def num_imu(self) -> int:
         return len(self.imu())
 
+    @property
+    def has_imu(self) -> bool:
+        """An IMU in the calibration and samples of it in the data."""
+        return self.calibration.imu is not None and self.num_imu > 0
+
     def start_ns(self) -> int:
         starts = [int(a[0]) for a in (self.frame_times_ns(), self.imu().t_ns) if len(a)]
         return min(starts) if starts else 0

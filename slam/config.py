@@ -477,6 +477,29 @@ def validate_config(cfg: SlamConfig) -> SlamConfig:
     return cfg
 
 
+def check_run_config(cfg: SlamConfig, name: str, *, stereo: bool, has_imu: bool) -> None:
+    """Raise :class:`SlamError` (one line) when ``cfg`` cannot run on the sequence ``name``,
+    whose calibration has two cameras (``stereo``) and whose data has IMU samples
+    (``has_imu``): the checks that need both the config and the input. ``slam run`` calls it
+    before it makes the output folder, ``run_slam`` again at the start of a run."""
+    if cfg.monocular:
+        if not (cfg.use_imu and has_imu):
+            raise SlamError(
+                f"{name}: the monocular preset needs an IMU (it fixes the scale); "
+                "this sequence has none"
+            )
+    elif not stereo:
+        raise SlamError(
+            f"{name}: one camera: the stereo pipeline needs cam0 and cam1; "
+            "use --config euroc-mono-imu (cam0 + IMU)"
+        )
+    if cfg.player.sequential_estimate_delay_ms > 0 and not cfg.player.sequential:
+        raise SlamError(
+            "config key player.sequential_estimate_delay_ms is for sequential runs only "
+            "(--sequential)"
+        )
+
+
 def _numeric_kind(hint: Any) -> tuple[type | None, bool]:
     """(int or float, None allowed) for a field's type; (None, False) when not numeric."""
     optional = False

@@ -83,6 +83,13 @@ def test_run_bad_inputs_are_one_line_errors(tmp_path, capsys):
     assert slam(["run", str(seq), "--out", str(tmp_path / "o"), "--config", str(cfg)]) == 2
     assert "max_featurez" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()  # nothing made for a run that cannot start
+    # a check of the config against the input, after loading: before --out is made, too
+    late = tmp_path / "late.yaml"
+    late.write_text("player:\n  sequential_estimate_delay_ms: 500\n")
+    assert slam(["run", str(seq), "--out", str(tmp_path / "o"), "--config", str(late)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "sequential runs only" in err[0]
+    assert not (tmp_path / "o").exists()
 
 
 def test_an_input_that_cannot_be_opened_leaves_no_out_folder(tmp_path, capsys):

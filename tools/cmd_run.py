@@ -126,7 +126,7 @@ def parse_speed(text: str) -> float:
 
 def handle(args: argparse.Namespace) -> int:
     from datasets.open import open_sequence
-    from slam.config import load_config, validate_config
+    from slam.config import check_run_config, load_config, validate_config
     from tools.seq_args import source_options
 
     out: Path = args.out
@@ -151,13 +151,7 @@ def handle(args: argparse.Namespace) -> int:
 
         cfg.mapping = dataclasses.replace(cfg.mapping, enabled=True)
     validate_config(cfg)  # with the command line's overrides
-    if not seq.calibration.is_stereo and not cfg.monocular:
-        raise SlamError(
-            f"{seq.name}: one camera: the stereo pipeline needs cam0 and cam1; "
-            "use --config euroc-mono-imu (cam0 + IMU)"
-        )
-    if cfg.monocular and not seq.num_imu:
-        raise SlamError(f"{seq.name}: the monocular preset needs an IMU (it fixes the scale)")
+    check_run_config(cfg, seq.name, stereo=seq.calibration.is_stereo, has_imu=seq.has_imu)
     try:  # fail before the run, not after it, when the folder cannot be made
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

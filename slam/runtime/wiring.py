@@ -26,8 +26,7 @@ from typing import Any
 
 from datasets.cam0_only import Cam0Only
 from datasets.sequence import Sequence
-from slam.config import SlamConfig, validate_config
-from slam.core.errors import SlamError
+from slam.config import SlamConfig, check_run_config, validate_config
 from slam.core.messages import (
     BackendOutput,
     FrontendCorrection,
@@ -176,22 +175,9 @@ def run_slam(
     run (``result.session.stop_server()`` ends it).
     """
     validate_config(cfg)  # again: callers may have changed it after loading
+    check_run_config(cfg, seq.name, stereo=seq.calibration.is_stereo, has_imu=seq.has_imu)
     if cfg.monocular:
-        if not (cfg.use_imu and seq.calibration.imu is not None and seq.num_imu > 0):
-            raise SlamError(
-                f"{seq.name}: the monocular preset needs an IMU (it fixes the scale); "
-                "this sequence has none"
-            )
         seq = Cam0Only.of(seq)  # a stereo source read as mono: cam0 and the IMU
-    elif not seq.calibration.is_stereo:
-        raise SlamError(
-            f"{seq.name}: one camera: the pipeline needs cam0 and cam1, or --config euroc-mono-imu"
-        )
-    if cfg.player.sequential_estimate_delay_ms > 0 and not cfg.player.sequential:
-        raise SlamError(
-            "config key player.sequential_estimate_delay_ms is for sequential runs only "
-            "(--sequential)"
-        )
     control = control or RunControl()
     with handle_stop_signals(control):
         result = _run(seq, cfg, out_dir, rerun_mode, progress, control)
