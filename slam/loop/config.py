@@ -34,6 +34,17 @@ class LoopClosureConfig:
     """... making up at least this fraction of the descriptor matches."""
     reprojection_px: float = bounded(2.5, gt=0)
     """PnP RANSAC inlier threshold, pixels."""
+    guided_radius_px: float = bounded(0.0, ge=0)
+    """Landmark-to-landmark verification (loops and the global adjustment's fusion search):
+    with this above 0, a RANSAC pose with at least ``guided_min_inliers`` inliers is searched
+    again by projection (ORB-SLAM's search by projection: each candidate landmark matched
+    among the query's landmarks within this radius of where the pose puts it,
+    ``verify.guided_matches``), and that search's inliers are what ``min_inliers`` and
+    ``min_inlier_ratio`` judge. 0: off (the default). ``euroc-mono-imu``: 8 (a monocular
+    keyframe has fewer landmarks with descriptors than a stereo one: on V1_01 true revisits
+    found 11-29 whole-set inliers where stereo's found 31-55; BENCHMARKS.md, v101loops20)."""
+    guided_min_inliers: int = bounded(12, ge=4, le_field="min_inliers")
+    """... RANSAC inliers (and descriptor matches) needed before that search."""
     gate_base_m: float = bounded(0.3, ge=0)
     """Plausibility gate: a loop may move the query keyframe by at most gate_base_m +
     gate_ratio * (odometry path length since the candidate) ..."""
