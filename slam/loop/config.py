@@ -36,8 +36,8 @@ class LoopClosureConfig:
     """PnP RANSAC inlier threshold, pixels."""
     guided_radius_px: float = bounded(0.0, ge=0)
     """Landmark-to-landmark verification (loops and the global adjustment's fusion search):
-    with this above 0, a RANSAC pose with at least ``guided_min_inliers`` inliers is searched
-    again by projection (ORB-SLAM's search by projection: each candidate landmark matched
+    with this above 0, a candidate the whole-set matching cannot verify is tried again: a
+    RANSAC pose with at least ``guided_min_inliers`` inliers is searched again by projection (ORB-SLAM's search by projection: each candidate landmark matched
     among the query's landmarks within this radius of where the pose puts it,
     ``verify.guided_matches``), and that search's inliers are what ``min_inliers`` and
     ``min_inlier_ratio`` judge. 0: off (the default). ``euroc-mono-imu``: 8 (a monocular

@@ -47,11 +47,12 @@ class VerifyParams:
     ransac_iterations: int = 300
     confidence: float = 0.999
     guided_radius_px: float = 0.0
-    """Landmark to landmark only (:func:`verify_loop_landmarks`): with this above 0, a RANSAC
-    pose with at least ``guided_min_inliers`` inliers is searched again by projection
-    (:func:`guided_matches`: each candidate landmark is matched among the query's landmarks
-    within this radius of where the pose puts it), and that search's inliers are what
-    ``min_inliers`` and ``min_inlier_ratio`` judge. 0: off."""
+    """Landmark to landmark only (:func:`verify_loop_landmarks`): with this above 0, a
+    candidate the whole-set matching cannot verify is tried again: a RANSAC pose with at least
+    ``guided_min_inliers`` inliers is searched again by projection (:func:`guided_matches`:
+    each candidate landmark is matched among the query's landmarks within this radius of where
+    the pose puts it), and that search's inliers are what ``min_inliers`` and
+    ``min_inlier_ratio`` judge. A candidate verified the usual way is left as it was. 0: off."""
     guided_min_inliers: int = 12
     """RANSAC inliers (and descriptor matches) needed before the projection search."""
 
@@ -446,9 +447,10 @@ def verify_loop_landmarks(
     res = verify_loop(
         query_xy_px, query_desc, candidate_desc, candidate_points, camera_matrix, None, p
     )
-    if p.guided_radius_px > 0:
+    if res is None and p.guided_radius_px > 0:
+        # too few whole-set inliers: search again by projection from a weaker first pose
         low = min(p.guided_min_inliers, p.min_inliers)
-        first = res or verify_loop(
+        first = verify_loop(
             query_xy_px,
             query_desc,
             candidate_desc,
@@ -457,13 +459,10 @@ def verify_loop_landmarks(
             None,
             dataclasses.replace(p, min_matches=low, min_inliers=low, min_inlier_ratio=0.0),
         )
-        guided = None
         if first is not None:
-            guided = _guided_verification(
+            res = _guided_verification(
                 first, query_xy_px, query_desc, candidate_desc, candidate_points, camera_matrix, p
             )
-        if guided is not None and (res is None or guided.num_inliers >= res.num_inliers):
-            res = guided
     if res is None:
         return None
     qi, ci = res.query_indices, res.candidate_indices
