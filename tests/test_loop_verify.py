@@ -27,7 +27,9 @@ def _scene(seed: int, n: int = 300, outlier_fraction: float = 0.3):
     depth = rng.uniform(2.0, 8.0, n)
     pts_c = np.column_stack([(xy_c - K[:2, 2]) / K[0, 0] * depth[:, None], depth])
     desc_c = rng.integers(0, 256, (n, 32), dtype=np.uint8)
-    cand_from_query = make_transform(so3_exp(np.array([0.05, -0.12, 0.03])), [0.3, -0.05, 0.25])
+    cand_from_query = make_transform(
+        so3_exp(np.array([0.05, -0.12, 0.03])), np.array([0.3, -0.05, 0.25])
+    )
     query_from_cand = invert_transform(cand_from_query)
     pts_q = pts_c @ query_from_cand[:3, :3].T + query_from_cand[:3, 3]
     xy_q = pts_q[:, :2] / pts_q[:, 2:] * K[0, 0] + K[:2, 2] + rng.normal(0, 0.5, (n, 2))
@@ -126,7 +128,9 @@ def test_patch_refinement_recovers_the_relative_pose(rendered_pair) -> None:
     pb = _cam_points(b.keyframe, cam.body_from_cam)
     pa *= 1 + rng.normal(0, 0.01, (len(pa), 1))
     pb *= 1 + rng.normal(0, 0.01, (len(pb), 1))
-    start = truth @ make_transform(so3_exp(np.radians([0.2, -0.2, 0.1])), [0.006, -0.005, 0.006])
+    start = truth @ make_transform(
+        so3_exp(np.radians([0.2, -0.2, 0.1])), np.array([0.006, -0.005, 0.006])
+    )
     ref = refine_on_patches(
         start,
         cam.intrinsics,
@@ -238,7 +242,9 @@ def _repeated_texture_scene(seed: int, n: int = 224, twins: int = 100):
     pts_c = np.column_stack([(xy_c - K[:2, 2]) / K[0, 0] * depth[:, None], depth])
     desc_c = rng.integers(0, 256, (n, 32), dtype=np.uint8)
     desc_c[n - twins :] = desc_c[:twins]
-    cand_from_query = make_transform(so3_exp(np.array([0.02, -0.08, 0.02])), [0.15, -0.02, 0.1])
+    cand_from_query = make_transform(
+        so3_exp(np.array([0.02, -0.08, 0.02])), np.array([0.15, -0.02, 0.1])
+    )
     query_from_cand = invert_transform(cand_from_query)
     pts_q = pts_c @ query_from_cand[:3, :3].T + query_from_cand[:3, 3]
     xy_q = pts_q[:, :2] / pts_q[:, 2:] * K[0, 0] + K[:2, 2] + rng.normal(0, 0.3, (n, 2))
