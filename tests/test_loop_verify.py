@@ -2,11 +2,19 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from slam.core.geometry import invert_transform, make_transform, so3_exp, so3_log
-from slam.loop.verify import match_descriptors, verify_loop
+from slam.loop.verify import (
+    VerifyParams,
+    guided_matches,
+    match_descriptors,
+    verify_loop,
+    verify_loop_landmarks,
+)
 
 K = np.array([[450.0, 0.0, 376.0], [0.0, 450.0, 240.0], [0.0, 0.0, 1.0]])
 
@@ -19,7 +27,9 @@ def _scene(seed: int, n: int = 300, outlier_fraction: float = 0.3):
     depth = rng.uniform(2.0, 8.0, n)
     pts_c = np.column_stack([(xy_c - K[:2, 2]) / K[0, 0] * depth[:, None], depth])
     desc_c = rng.integers(0, 256, (n, 32), dtype=np.uint8)
-    cand_from_query = make_transform(so3_exp(np.array([0.05, -0.12, 0.03])), [0.3, -0.05, 0.25])
+    cand_from_query = make_transform(
+        so3_exp(np.array([0.05, -0.12, 0.03])), np.array([0.3, -0.05, 0.25])
+    )
     query_from_cand = invert_transform(cand_from_query)
     pts_q = pts_c @ query_from_cand[:3, :3].T + query_from_cand[:3, 3]
     xy_q = pts_q[:, :2] / pts_q[:, 2:] * K[0, 0] + K[:2, 2] + rng.normal(0, 0.5, (n, 2))
@@ -118,7 +128,9 @@ def test_patch_refinement_recovers_the_relative_pose(rendered_pair) -> None:
     pb = _cam_points(b.keyframe, cam.body_from_cam)
     pa *= 1 + rng.normal(0, 0.01, (len(pa), 1))
     pb *= 1 + rng.normal(0, 0.01, (len(pb), 1))
-    start = truth @ make_transform(so3_exp(np.radians([0.2, -0.2, 0.1])), [0.006, -0.005, 0.006])
+    start = truth @ make_transform(
+        so3_exp(np.radians([0.2, -0.2, 0.1])), np.array([0.006, -0.005, 0.006])
+    )
     ref = refine_on_patches(
         start,
         cam.intrinsics,
@@ -217,3 +229,62 @@ def test_refine_symmetric_recovers_the_pose_despite_outliers():
         err = invert_transform(true) @ est
         assert np.linalg.norm(err[:3, 3]) < 0.005
         assert np.degrees(rotation_angle_rad(err[:3, :3])) < 0.1
+
+
+def _repeated_texture_scene(seed: int, n: int = 224, twins: int = 100):
+    """``n`` landmarks of a candidate keyframe seen again by a query keyframe (undistorted
+    pixels, descriptors with up to 12 flipped bits, the query's own landmark positions), of
+    which the last ``twins`` repeat the texture of the first ones elsewhere in the scene (the
+    same descriptor): the whole-image ratio test then drops the matches of both copies."""
+    rng = np.random.default_rng(seed)
+    xy_c = rng.uniform([40, 40], [712, 440], (n, 2))
+    depth = rng.uniform(1.5, 5.0, n)
+    pts_c = np.column_stack([(xy_c - K[:2, 2]) / K[0, 0] * depth[:, None], depth])
+    desc_c = rng.integers(0, 256, (n, 32), dtype=np.uint8)
+    desc_c[n - twins :] = desc_c[:twins]
+    cand_from_query = make_transform(
+        so3_exp(np.array([0.02, -0.08, 0.02])), np.array([0.15, -0.02, 0.1])
+    )
+    query_from_cand = invert_transform(cand_from_query)
+    pts_q = pts_c @ query_from_cand[:3, :3].T + query_from_cand[:3, 3]
+    xy_q = pts_q[:, :2] / pts_q[:, 2:] * K[0, 0] + K[:2, 2] + rng.normal(0, 0.3, (n, 2))
+    bits = np.unpackbits(desc_c, axis=1)
+    for row in bits:
+        row[rng.choice(256, rng.integers(0, 13), replace=False)] ^= 1
+    desc_q = np.packbits(bits, axis=1)
+    return xy_q, desc_q, pts_q, xy_c, desc_c, pts_c, cand_from_query
+
+
+def test_guided_search_verifies_a_revisit_the_whole_image_matching_misses() -> None:
+    """A repeated texture leaves the whole-image matching too few matches (the ratio test sees
+    the twin); the projection search from the first RANSAC pose looks only near where each
+    landmark falls and recovers them: verified, with the true pose."""
+    q_xy, q_desc, q_pts, c_xy, c_desc, c_pts, cand_from_query = _repeated_texture_scene(0)
+    params = VerifyParams(min_inliers=30, min_inlier_ratio=0.35, reprojection_px=2.5)
+    assert verify_loop_landmarks(q_xy, q_desc, q_pts, c_xy, c_desc, c_pts, K, params) is None
+    guided = replace(params, guided_radius_px=8.0, guided_min_inliers=12)
+    res = verify_loop_landmarks(q_xy, q_desc, q_pts, c_xy, c_desc, c_pts, K, guided)
+    assert res is not None
+    assert res.num_inliers >= 150
+    est = res.candidate_cam_from_query_cam
+    assert np.linalg.norm(est[:3, 3] - cand_from_query[:3, 3]) < 0.01
+    assert np.degrees(np.linalg.norm(so3_log(est[:3, :3].T @ cand_from_query[:3, :3]))) < 0.2
+    # every guided match pairs a landmark with its own observation, not its twin
+    qi, ci = guided_matches(cand_from_query, q_xy, q_desc, c_desc, c_pts, K, 8.0)
+    assert len(qi) >= 200
+    assert np.array_equal(qi, ci)
+    # ... where the whole-image matching keeps few (the untwinned ones at most)
+    assert len(match_descriptors(q_desc, c_desc)[0]) < 30
+
+
+def test_guided_search_still_rejects_an_inconsistent_place() -> None:
+    """The same descriptors at positions inconsistent with any pose (aliasing): no first
+    RANSAC pose, so no projection search either."""
+    q_xy, q_desc, q_pts, c_xy, c_desc, c_pts, _ = _repeated_texture_scene(1, twins=0)
+    scrambled = q_xy[np.random.default_rng(2).permutation(len(q_xy))]
+    params = VerifyParams(
+        min_inliers=30, min_inlier_ratio=0.35, reprojection_px=2.5, guided_radius_px=8.0
+    )
+    assert verify_loop_landmarks(scrambled, q_desc, q_pts, c_xy, c_desc, c_pts, K, params) is None
+    # and unscrambled it verifies (the scene is a real revisit)
+    assert verify_loop_landmarks(q_xy, q_desc, q_pts, c_xy, c_desc, c_pts, K, params) is not None

@@ -314,6 +314,8 @@ class LoopCloser:
             min_inliers=c.min_inliers,
             min_inlier_ratio=c.min_inlier_ratio,
             reprojection_px=c.reprojection_px,
+            guided_radius_px=c.guided_radius_px,
+            guided_min_inliers=c.guided_min_inliers,
         )
         self.orb = cv2.ORB_create()
         self.stats = LoopStats()

@@ -11,6 +11,7 @@ then ``F_from_query_cam``).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -45,6 +46,15 @@ class VerifyParams:
     """RANSAC inlier threshold (pixels)."""
     ransac_iterations: int = 300
     confidence: float = 0.999
+    guided_radius_px: float = 0.0
+    """Landmark to landmark only (:func:`verify_loop_landmarks`): with this above 0, a
+    candidate the whole-set matching cannot verify is tried again: a RANSAC pose with at least
+    ``guided_min_inliers`` inliers is searched again by projection (:func:`guided_matches`:
+    each candidate landmark is matched among the query's landmarks within this radius of where
+    the pose puts it), and that search's inliers are what ``min_inliers`` and
+    ``min_inlier_ratio`` judge. A candidate verified the usual way is left as it was. 0: off."""
+    guided_min_inliers: int = 12
+    """RANSAC inliers (and descriptor matches) needed before the projection search."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -301,6 +311,118 @@ def _huber_gauss_newton(
     return x
 
 
+_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
+
+
+def hamming_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(N, M) Hamming distances between the rows of two binary descriptor arrays (N, 32) and
+    (M, 32) uint8."""
+    x = np.bitwise_xor(np.asarray(a, np.uint8)[:, None, :], np.asarray(b, np.uint8)[None, :, :])
+    return _POPCOUNT[x].sum(axis=2, dtype=np.int32)
+
+
+def guided_matches(
+    candidate_cam_from_query_cam: np.ndarray,
+    query_xy_px: np.ndarray,
+    query_desc: np.ndarray,
+    candidate_desc: np.ndarray,
+    candidate_points: np.ndarray,
+    camera_matrix: np.ndarray,
+    radius_px: float,
+    ratio: float = 0.8,
+    max_hamming: int = 64,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Descriptor matches searched by projection (ORB-SLAM's search by projection after a
+    loop's first pose): each candidate landmark in front of the query camera under the pose
+    is matched to the query keypoints within ``radius_px`` of where it projects (best Hamming
+    distance, at most ``max_hamming``, below ``ratio`` times the second best there), one to
+    one (the closest descriptor keeps a query keypoint). Unlike the whole-set matching, whose
+    ratio test runs against every keypoint of the image, a repeated texture elsewhere in the
+    image does not veto a match. Returns (query indices, candidate indices), (M,) int64."""
+    empty = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+    pts = np.asarray(candidate_points, dtype=np.float64)
+    qxy = np.asarray(query_xy_px, dtype=np.float64)
+    if not len(pts) or not len(qxy):
+        return empty
+    pose = np.asarray(candidate_cam_from_query_cam, dtype=np.float64)
+    in_q = (pts - pose[:3, 3]) @ pose[:3, :3]  # candidate points in the query camera
+    ok = np.all(np.isfinite(in_q), axis=1) & (in_q[:, 2] > 1e-6)
+    rows = np.flatnonzero(ok)
+    if not len(rows):
+        return empty
+    uv = _project(in_q[rows], np.asarray(camera_matrix, dtype=np.float64))
+    near = np.linalg.norm(uv[:, None, :] - qxy[None, :, :], axis=2) < radius_px
+    dist = np.where(near, hamming_matrix(np.asarray(candidate_desc)[rows], query_desc), 10**6)
+    order = np.argsort(dist, axis=1, kind="stable")
+    best = dist[np.arange(len(rows)), order[:, 0]]
+    second = (
+        dist[np.arange(len(rows)), order[:, 1]] if dist.shape[1] > 1 else np.full(len(rows), 10**6)
+    )
+    keep = (best <= max_hamming) & (best < ratio * second)
+    c_idx, q_idx, d = rows[keep], order[keep, 0], best[keep]
+    by_distance = np.argsort(d, kind="stable")
+    _, first = np.unique(q_idx[by_distance], return_index=True)
+    sel = np.sort(by_distance[first])
+    return q_idx[sel].astype(np.int64), c_idx[sel].astype(np.int64)
+
+
+def _guided_verification(
+    first: LoopVerification,
+    query_xy_px: np.ndarray,
+    query_desc: np.ndarray,
+    candidate_desc: np.ndarray,
+    candidate_points: np.ndarray,
+    camera_matrix: np.ndarray,
+    p: VerifyParams,
+) -> LoopVerification | None:
+    """:func:`guided_matches` from a first RANSAC pose, the pose refined (Levenberg-Marquardt)
+    on those within ``reprojection_px``, the inliers selected again; None below
+    ``min_inliers`` or ``min_inlier_ratio`` of the search's matches."""
+    q_idx, c_idx = guided_matches(
+        first.candidate_cam_from_query_cam,
+        query_xy_px,
+        query_desc,
+        candidate_desc,
+        candidate_points,
+        camera_matrix,
+        p.guided_radius_px,
+        ratio=p.ratio,
+        max_hamming=p.max_hamming,
+    )
+    if len(q_idx) < p.min_inliers:
+        return None
+    k = np.asarray(camera_matrix, dtype=np.float64)
+    obj = np.ascontiguousarray(np.asarray(candidate_points, dtype=np.float64)[c_idx])
+    img = np.ascontiguousarray(np.asarray(query_xy_px, dtype=np.float64)[q_idx])
+    query_cam_from_candidate = invert_transform(first.candidate_cam_from_query_cam)
+    rvec = cv2.Rodrigues(query_cam_from_candidate[:3, :3])[0]
+    tvec = query_cam_from_candidate[:3, 3].reshape(3, 1).copy()
+    inl = np.zeros(len(obj), bool)
+    for _ in range(2):
+        projected, _ = cv2.projectPoints(obj, rvec, tvec, k, None)
+        err = np.linalg.norm(projected.reshape(-1, 2) - img, axis=1)
+        in_front = (obj @ cv2.Rodrigues(rvec)[0].T + tvec.reshape(3))[:, 2] > 0
+        inl = (err < p.reprojection_px) & in_front
+        if inl.sum() < max(p.min_inliers, 4):
+            return None
+        rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], k, None, rvec, tvec)
+    projected, _ = cv2.projectPoints(obj, rvec, tvec, k, None)
+    err = np.linalg.norm(projected.reshape(-1, 2) - img, axis=1)
+    in_front = (obj @ cv2.Rodrigues(rvec)[0].T + tvec.reshape(3))[:, 2] > 0
+    sel = np.flatnonzero((err < p.reprojection_px) & in_front)
+    if len(sel) < p.min_inliers or len(sel) < p.min_inlier_ratio * len(q_idx):
+        return None
+    pose = make_transform(cv2.Rodrigues(rvec)[0], tvec.reshape(3))
+    return LoopVerification(
+        candidate_cam_from_query_cam=invert_transform(pose),
+        num_inliers=int(len(sel)),
+        num_matches=int(len(q_idx)),
+        query_indices=q_idx[sel],
+        candidate_indices=c_idx[sel],
+        rms_reprojection_px=float(np.sqrt(np.mean(err[sel] ** 2))),
+    )
+
+
 def verify_loop_landmarks(
     query_xy_px: np.ndarray,
     query_desc: np.ndarray,
@@ -325,6 +447,22 @@ def verify_loop_landmarks(
     res = verify_loop(
         query_xy_px, query_desc, candidate_desc, candidate_points, camera_matrix, None, p
     )
+    if res is None and p.guided_radius_px > 0:
+        # too few whole-set inliers: search again by projection from a weaker first pose
+        low = min(p.guided_min_inliers, p.min_inliers)
+        first = verify_loop(
+            query_xy_px,
+            query_desc,
+            candidate_desc,
+            candidate_points,
+            camera_matrix,
+            None,
+            dataclasses.replace(p, min_matches=low, min_inliers=low, min_inlier_ratio=0.0),
+        )
+        if first is not None:
+            res = _guided_verification(
+                first, query_xy_px, query_desc, candidate_desc, candidate_points, camera_matrix, p
+            )
     if res is None:
         return None
     qi, ci = res.query_indices, res.candidate_indices
