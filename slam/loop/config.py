@@ -268,6 +268,13 @@ class LoopClosureConfig:
     stats.json ``loop_closure.global_ba.imu_*_bias_wander`` and ``imu_*_walk_factor``); 0: they
     always apply. ``euroc-mono-imu``: 1.5 (the fair V1_01 renders' accelerometer / gyro
     wander 1.8-2.3 / 2.2-3.5, the suite's at most 1.05; BENCHMARKS.md, v101loop19)."""
+    global_ba_imu_accel_bias_smoothing: float = bounded(0.0, ge=0)
+    """With it above 0, where ``global_ba_imu_accel_walk_factor`` applies (behind the gate):
+    the accelerometer bias is also held by a second-order random walk of this density (m/s^2
+    per s^1.5; ``GlobalBaParams.imu_accel_bias_smoothing``), free to drift slowly but not to
+    follow the motion, and the bias walks become factors of their own beside ``ImuFactor``s,
+    so the walk factor no longer widens the IMU factors' noise. ``euroc-mono-imu``: 0.015 with
+    the accelerometer's walk factor 1000 (BENCHMARKS.md, v101walk20). 0: none."""
     global_ba_fusion: bool = True
     """Before the global adjustment, match every keyframe landmark to landmark against the
     keyframes of *other passes* near its corrected pose (ORB-SLAM's loop fusion), so the
