@@ -52,7 +52,7 @@ def test_midpoint_rotation_preintegrates_closer_to_the_truth(profile: str) -> No
     calib, motion, imu = _exact_imu(profile, 6.0)
     assert calib.imu is not None
     gravity = np.array([0.0, 0.0, -calib.imu.gravity_m_s2])
-    err = {False: [], True: []}
+    err: dict[bool, list[float]] = {False: [], True: []}
     for t0 in np.arange(0, 5_500_000_000, KF_DT_NS):
         t1 = int(t0 + KF_DT_NS)
         s = motion.sample(np.array([t0, t1]) * 1e-9)
@@ -65,7 +65,7 @@ def test_midpoint_rotation_preintegrates_closer_to_the_truth(profile: str) -> No
                 preintegration_params(calib.imu), gtsam.imuBias.ConstantBias()
             )
             integrate_pieces(pim, pieces, midpoint)
-            err[midpoint].append(np.linalg.norm(rot0 @ pim.deltaVij() - true_dv))
+            err[midpoint].append(float(np.linalg.norm(rot0 @ pim.deltaVij() - true_dv)))
     start_rule = float(np.sqrt(np.mean(np.square(err[False]))))
     midpoint_rule = float(np.sqrt(np.mean(np.square(err[True]))))
     # measured (start's rule / midpoint rule, RMS): figure8 3.2e-4 / 1.2e-7 m/s, aggressive

@@ -552,8 +552,7 @@ def global_bundle_adjustment(
         # estimates by the same factor: they came from the calibrated walk.
         bias_prior = gtsam.noiseModel.Diagonal.Sigmas(
             np.array(
-                [p.imu_bias_sigma_accel_m_s2 * accel_factor] * 3
-                + [p.imu_bias_sigma_gyro_rad_s] * 3
+                [p.imu_bias_sigma_accel_m_s2 * accel_factor] * 3 + [p.imu_bias_sigma_gyro_rad_s] * 3
             )
         )
         for k in imu_keyframes:
@@ -655,9 +654,7 @@ def global_bundle_adjustment(
         assert inertial is not None and imu is not None
         imu_first = int(full.size())
         for a, b in links:
-            full.add(
-                _imu_factor(a, b, inertial, values, imu, p.imu_scale_error, None, p, between)
-            )
+            full.add(_imu_factor(a, b, inertial, values, imu, p.imu_scale_error, None, p, between))
         factor_imu = imu_first + np.arange(len(links))
     for round_ in range(max(p.rounds, 1)):  # solve; drop outliers; solve again (and again)
         if deadline is not None and iteration_s is not None:
