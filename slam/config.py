@@ -390,11 +390,18 @@ PRESETS: dict[str, dict[str, Any]] = {
         # renders with the map rescale above, loop-closed median 14.72 -> 7.25 mm; the suite
         # unchanged: the gate passes none of it). Not the gyro's: realistic
         # room-figure8 s1's gyro wander is 2.4, and its x30 took that run's loop-closed ATE
-        # 3.57 -> 5.12 mm, for 2 % on V1_01 (BENCHMARKS.md, v101loop19)
+        # 3.57 -> 5.12 mm, for 2 % on V1_01 (BENCHMARKS.md, v101loop19). Behind the same gate,
+        # the accelerometer bias as a second-order walk (0.015 m/s^2 per s^1.5) beside a free
+        # first-order one (x1000, as factors of their own beside ImuFactors) and its prior on the
+        # back end's estimates loosened by that factor: free to drift slowly, not to follow the
+        # motion (fair V1_01 renders, loop-closed 8.34 / 6.15 / 7.90 -> 6.33 / 4.32 / 5.80 mm,
+        # Sim(3) scale error 0.45 / 0.31 / 0.39 -> 0.33 / 0.20 / 0.26 %; the suite byte-identical:
+        # the gate passes none of it; BENCHMARKS.md, v101walk20)
         "loop": {
             "global_ba_imu_midpoint": True,
             "global_ba_imu_odometry_rotation_only": True,
-            "global_ba_imu_accel_walk_factor": 10.0,
+            "global_ba_imu_accel_walk_factor": 1000.0,
+            "global_ba_imu_accel_bias_smoothing": 0.015,
             "global_ba_imu_walk_gate": 1.5,
         },
     },

@@ -94,7 +94,7 @@ def integration_pieces(
 
 
 def integrate_pieces(
-    pim: gtsam.PreintegratedCombinedMeasurements,
+    pim: gtsam.PreintegratedCombinedMeasurements | gtsam.PreintegratedImuMeasurements,
     pieces: tuple[np.ndarray, np.ndarray, np.ndarray],
     midpoint_rotation: bool = False,
 ) -> None:

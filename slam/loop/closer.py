@@ -956,6 +956,7 @@ class LoopCloser:
                 imu_accel_walk_factor=c.global_ba_imu_accel_walk_factor,
                 imu_gyro_walk_factor=c.global_ba_imu_gyro_walk_factor,
                 imu_walk_gate=c.global_ba_imu_walk_gate,
+                imu_accel_bias_smoothing=c.global_ba_imu_accel_bias_smoothing,
             ),
             inertial=inertial,
             imu=self.calib.imu,

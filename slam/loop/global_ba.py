@@ -198,7 +198,11 @@ class GlobalBaParams:
     systematic acceleration that a monocular map's weakly held scale follows."""
     imu_bias_sigma_gyro_rad_s: float = 0.01
     imu_bias_sigma_accel_m_s2: float = 0.1
-    """Weak priors on every bias state at the back end's estimate."""
+    """Weak priors on every bias state at the back end's estimate (the accelerometer's sigma
+    times the accelerometer walk factor where that applies: the back end's estimates came
+    from the calibrated walk; with 505 bias states, 0.1 m/s^2 each holds their mean to 4.5
+    mm/s^2. On the fair V1_01 renders, x10 took the loop-closed Sim(3) scale error 0.44 /
+    0.31 / 0.39 -> 0.40 / 0.24 / 0.34 %, offline; BENCHMARKS.md, v101walk20)."""
     imu_accel_walk_factor: float = 1.0
     """The accelerometer bias's random walk in the IMU factors (and in the refit's bias model):
     the calibration's times this. A real accelerometer's bias can wander further than its
@@ -214,6 +218,19 @@ class GlobalBaParams:
     that sensor's bias (``inertial``) wandered at least this many times as far as its
     calibrated random walk allows (:func:`bias_wander`); elsewhere the calibrated walk stays.
     0: the factors always apply."""
+    imu_accel_bias_smoothing: float = 0.0
+    """With it above 0, where ``imu_accel_walk_factor`` applies (behind ``imu_walk_gate``):
+    the accelerometer bias is also held by a second-order (integrated) random walk of this
+    density (m/s^2 per s^1.5): its change per second from one IMU factor to the next,
+    ``(b_c - b_b) / dt_bc - (b_b - b_a) / dt_ab``, has sigma this times
+    ``sqrt((dt_ab + dt_bc) / 2)``. Such a bias is free to drift slowly but not to follow the
+    motion's accelerations (its spectrum falls as 1/f^4, the walk's as 1/f^2). The IMU factors
+    then hold each interval's bias constant (``ImuFactor``, the readings' noise from the
+    calibration alone) and the bias states are joined by their own walk factors
+    (``BetweenFactorConstantBias``, the walks times the factors): in a ``CombinedImuFactor``
+    a loose walk also widens the preintegrated position and velocity noise, and the IMU's
+    hold on the map's scale with it (walk x1000 there: V1_01 scene 0's loop-closed scale error
+    0.90 %; BENCHMARKS.md, v101walk20). 0: none."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -393,6 +410,8 @@ def global_bundle_adjustment(
             accel_factor = 1.0
         if wander is None or wander[1] < p.imu_walk_gate:
             gyro_factor = 1.0
+    imu_calibrated = imu
+    between = p.imu_accel_bias_smoothing > 0 and accel_factor != 1.0
     if imu is not None and (accel_factor != 1.0 or gyro_factor != 1.0):
         imu = dataclasses.replace(
             imu,
@@ -529,8 +548,12 @@ def global_bundle_adjustment(
     imu_keyframes = sorted({k for link in links for k in link})
     if links:
         assert inertial is not None and imu is not None
+        # A looser accelerometer walk (behind the gate) loosens the prior on the back end's
+        # estimates by the same factor: they came from the calibrated walk.
         bias_prior = gtsam.noiseModel.Diagonal.Sigmas(
-            np.array([p.imu_bias_sigma_accel_m_s2] * 3 + [p.imu_bias_sigma_gyro_rad_s] * 3)
+            np.array(
+                [p.imu_bias_sigma_accel_m_s2 * accel_factor] * 3 + [p.imu_bias_sigma_gyro_rad_s] * 3
+            )
         )
         for k in imu_keyframes:
             st = inertial[k]
@@ -538,6 +561,9 @@ def global_bundle_adjustment(
             values.insert(_velocity_key(k), np.asarray(st.velocity_world_m_s, dtype=float))
             values.insert(_bias_key(k), bias)
             graph.add(gtsam.PriorFactorConstantBias(_bias_key(k), bias, bias_prior))
+        if between:
+            _add_bias_walks(graph, values, links, inertial, imu, p.imu_accel_bias_smoothing)
+            imu = imu_calibrated  # the readings' noise (and the refit's bias model) as calibrated
     cal = [
         gtsam.Cal3_S2(c.intrinsics.fx, c.intrinsics.fy, 0.0, c.intrinsics.cx, c.intrinsics.cy)
         for c in cams
@@ -628,7 +654,7 @@ def global_bundle_adjustment(
         assert inertial is not None and imu is not None
         imu_first = int(full.size())
         for a, b in links:
-            full.add(_imu_factor(a, b, inertial, values, imu, p.imu_scale_error, None, p))
+            full.add(_imu_factor(a, b, inertial, values, imu, p.imu_scale_error, None, p, between))
         factor_imu = imu_first + np.arange(len(links))
     for round_ in range(max(p.rounds, 1)):  # solve; drop outliers; solve again (and again)
         if deadline is not None and iteration_s is not None:
@@ -673,7 +699,7 @@ def global_bundle_adjustment(
                 full.remove(i)
             imu_first = int(full.size())
             for a, b in links:
-                full.add(_imu_factor(a, b, inertial, result, imu, refit_error, refit, p))
+                full.add(_imu_factor(a, b, inertial, result, imu, refit_error, refit, p, between))
             factor_imu = imu_first + np.arange(len(links))
         if reweigh is not None:
             # The kept observations of keyframes noisier than the round's: their factors again,
@@ -761,6 +787,52 @@ def _rotation_only(info_g2o: np.ndarray) -> np.ndarray:
     return out
 
 
+def _add_bias_walks(
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    links: Sequence[tuple[int, int]],
+    inertial: Mapping[int, KeyframeInertial],
+    imu: ImuCalibration,
+    smoothing: float,
+) -> None:
+    """``GlobalBaParams.imu_accel_bias_smoothing``'s bias factors: a random walk (``imu``'s,
+    the walk factors applied) between the bias states of each IMU factor's keyframes, and the
+    accelerometer's second-order walk of density ``smoothing`` on every chain of two, (a, b),
+    (b, c); the latter linear in the biases, so one ``LinearContainerFactor`` each, at
+    ``values``."""
+    walk = np.array([imu.accel_random_walk] * 3 + [imu.gyro_random_walk] * 3)
+    dt_of = {(a, b): (inertial[b].t_ns - inertial[a].t_ns) * 1e-9 for a, b in links}
+    for (a, b), dt in dt_of.items():
+        graph.add(
+            gtsam.BetweenFactorConstantBias(
+                _bias_key(a),
+                _bias_key(b),
+                gtsam.imuBias.ConstantBias(),
+                gtsam.noiseModel.Diagonal.Sigmas(walk * np.sqrt(max(dt, 1e-3))),
+            )
+        )
+    next_of = dict(links)
+    pick = np.eye(6)[:3]  # a ConstantBias's tangent vector: accelerometer first
+    for a, b in links:
+        c = next_of.get(b)
+        if c is None:
+            continue
+        dt_ab, dt_bc = dt_of[(a, b)], dt_of[(b, c)]
+        if dt_ab <= 0 or dt_bc <= 0:
+            continue
+        coef = (1.0 / dt_ab, -(1.0 / dt_ab + 1.0 / dt_bc), 1.0 / dt_bc)
+        keys = (_bias_key(a), _bias_key(b), _bias_key(c))
+        at = gtsam.Values()
+        for k in keys:
+            at.insert(k, values.atConstantBias(k))
+        r0 = sum(w * at.atConstantBias(k).accelerometer() for w, k in zip(coef, keys, strict=True))
+        noise = gtsam.noiseModel.Isotropic.Sigma(3, smoothing * np.sqrt(0.5 * (dt_ab + dt_bc)))
+        jf = gtsam.JacobianFactor(
+            keys[0], coef[0] * pick, keys[1], coef[1] * pick, keys[2], coef[2] * pick, -r0, noise
+        )
+        graph.add(gtsam.LinearContainerFactor(jf, at))
+
+
 def _imu_links(
     kf_ids: Sequence[int], inertial: Mapping[int, KeyframeInertial]
 ) -> list[tuple[int, int]]:
@@ -789,10 +861,12 @@ def _imu_factor(
     scale_error: float,
     intrinsics: ImuIntrinsics | None,
     p: GlobalBaParams,
-) -> gtsam.CombinedImuFactor:
+    between: bool = False,
+) -> gtsam.CombinedImuFactor | gtsam.ImuFactor:
     """The IMU factor from keyframe ``a`` to ``b``: ``b``'s readings (through ``intrinsics``
     when given) preintegrated about ``a``'s bias in ``values``, their noise allowing for
-    ``scale_error``."""
+    ``scale_error``. ``between``: an ``ImuFactor`` (the bias held over the interval; its
+    walk is a factor of its own, ``_add_bias_walks``)."""
     st = inertial[b]
     gyro, accel = st.piece_gyro_rad_s, st.piece_accel_m_s2
     if intrinsics is not None:
@@ -804,6 +878,12 @@ def _imu_factor(
         if scale_error > 0
         else preintegration_params(imu)
     )
+    if between:
+        held = gtsam.PreintegratedImuMeasurements(params, values.atConstantBias(_bias_key(a)))
+        integrate_pieces(held, pieces, p.imu_midpoint_rotation)
+        return gtsam.ImuFactor(
+            _pose_key(a), _velocity_key(a), _pose_key(b), _velocity_key(b), _bias_key(a), held
+        )
     pim = gtsam.PreintegratedCombinedMeasurements(params, values.atConstantBias(_bias_key(a)))
     integrate_pieces(pim, pieces, p.imu_midpoint_rotation)
     return gtsam.CombinedImuFactor(
