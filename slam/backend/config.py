@@ -201,6 +201,9 @@ class BackendConfig:
     mono_scale_check_with_bias: bool = False
     """The scale check aligns the IMU less the smoother's newest accelerometer bias (else the
     raw IMU, its bias held near 0 by the start's prior)."""
+    mono_scale_check_repeats: int = bounded(1, ge=1)
+    """A correction needs this many counted checks in a row off by more than the tolerance on
+    the same side (the newest one's scale and velocity are used); 1: every such check."""
     mono_scale_check_max_std: float = bounded(0.03, gt=0)
     """A check counts only when its scale's standard deviation is under this fraction."""
     mono_scale_check_tolerance: float = bounded(0.1, gt=0, lt=1)

@@ -225,6 +225,8 @@ class VioBackend:
         # monocular scale check: (t_ns, world_from_body) of recent keyframes, newest estimate
         self._kf_history: dict[int, np.ndarray] = {}
         self._last_scale_check_ns = 0
+        # consecutive counted scale checks off beyond the tolerance on one side (signed)
+        self._scale_check_streak = 0
         self._smoother: FixedLagSmoother | None = None
         self._values = gtsam.Values()
         self._states: list[_State] = []
@@ -684,6 +686,10 @@ class VioBackend:
             )
         if res is None:
             return None
+        side = (1 if res.scale > 1.0 else -1) if res.wrong else 0
+        same = side != 0 and side * self._scale_check_streak > 0
+        self._scale_check_streak = self._scale_check_streak + side if same else side
+        correct = res.wrong and abs(self._scale_check_streak) >= cfg.mono_scale_check_repeats
         if len(self.stats.mono_scale_checks) < 500:
             entry: dict[str, Any] = {
                 "t_ns": kf.t_ns,
@@ -691,13 +697,14 @@ class VioBackend:
                 "scale": round(res.scale, 4),
                 "scale_std": round(res.scale_std, 4),
                 "counted": res.counted,
-                "corrected": res.wrong,
+                "corrected": correct,
             }
             if np.isfinite(res.residual_m):
                 entry["residual_m"] = round(res.residual_m, 5)
             self.stats.mono_scale_checks.append(entry)
-        if not res.wrong:
+        if not correct:
             return None
+        self._scale_check_streak = 0
         self.stats.mono_scale_corrections += 1
         last = self._states[-1]
         pose = vals.atPose3(X(last.k))
