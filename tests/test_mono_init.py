@@ -11,7 +11,14 @@ import pytest
 
 from datasets.synth.vio_world import generate_world
 from slam.backend.imu import integrate_pieces, integration_pieces, make_bias, preintegration_params
-from slam.backend.mono_init import align_mono, batch_start, check_scale, check_scale_by_imu_fit
+from slam.backend.mono_init import (
+    ScaleCheck,
+    align_mono,
+    batch_start,
+    check_scale,
+    check_scale_by_imu_fit,
+    scale_check_streak,
+)
 from slam.core.geometry import scale_body_pose
 
 
@@ -193,6 +200,20 @@ def test_imu_fit_scale_check_reads_noisy_poses_the_alignment_cannot(noise_m):
         assert res.scale == pytest.approx(1.0 / factor, rel=0.005)
         assert np.linalg.norm(res.velocity_m_s - v_true.velocities_m_s[0]) < 0.015
         assert res.residual_m == pytest.approx(np.sqrt(3.0) * noise_m, rel=0.25)
+
+
+def test_scale_check_streak_counts_wrong_checks_on_one_side():
+    """``backend.mono_scale_check_repeats``' count: consecutive wrong checks on one side add up,
+    one on the other side starts again at 1, a right or uncounted one resets it."""
+    v = np.zeros(3)
+    high, low = ScaleCheck(1.2, 0.01, True, True, v), ScaleCheck(0.8, 0.01, True, True, v)
+    right, loose = ScaleCheck(1.2, 0.01, True, False, v), ScaleCheck(1.2, 0.5, False, False, v)
+    streak = 0
+    seen = []
+    for check in (high, high, low, low, low, right, high, loose, low):
+        streak = scale_check_streak(streak, check)
+        seen.append(streak)
+    assert seen == [1, 2, -1, -2, -3, 0, 1, 0, -1]
 
 
 def _gentle_world(seed: int, point_sigma_m: float = 0.02):

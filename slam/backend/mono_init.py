@@ -479,6 +479,16 @@ def check_scale(
     return ScaleCheck(res.scale, res.scale_std, res.accepted, wrong, velocity)
 
 
+def scale_check_streak(streak: int, check: ScaleCheck) -> int:
+    """The count of consecutive wrong checks off on the same side, signed (+ too large, -
+    too small), after ``check``: a right or uncounted check resets it to 0, a wrong one on the
+    other side to +-1 (``backend.mono_scale_check_repeats`` corrects at its magnitude)."""
+    if not check.wrong:
+        return 0
+    side = 1 if check.scale > 1.0 else -1
+    return streak + side if side * streak > 0 else side
+
+
 def check_scale_by_imu_fit(
     t_kf_ns: np.ndarray,
     world_from_body: np.ndarray,

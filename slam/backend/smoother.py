@@ -60,6 +60,7 @@ from slam.backend.mono_init import (
     check_scale,
     check_scale_by_imu_fit,
     refine_vo_poses,
+    scale_check_streak,
     start_gate,
 )
 from slam.backend.time_offset import OnlineTimeOffset
@@ -686,9 +687,7 @@ class VioBackend:
             )
         if res is None:
             return None
-        side = (1 if res.scale > 1.0 else -1) if res.wrong else 0
-        same = side != 0 and side * self._scale_check_streak > 0
-        self._scale_check_streak = self._scale_check_streak + side if same else side
+        self._scale_check_streak = scale_check_streak(self._scale_check_streak, res)
         correct = res.wrong and abs(self._scale_check_streak) >= cfg.mono_scale_check_repeats
         if len(self.stats.mono_scale_checks) < 500:
             entry: dict[str, Any] = {
