@@ -11,7 +11,14 @@ import pytest
 
 from datasets.synth.vio_world import generate_world
 from slam.backend.imu import integrate_pieces, integration_pieces, make_bias, preintegration_params
-from slam.backend.mono_init import align_mono, batch_start, check_scale
+from slam.backend.mono_init import (
+    ScaleCheck,
+    align_mono,
+    batch_start,
+    check_scale,
+    check_scale_by_imu_fit,
+    scale_check_streak,
+)
 from slam.core.geometry import scale_body_pose
 
 
@@ -153,6 +160,60 @@ def test_scale_check_detects_and_corrects_a_scale_runaway():
     near[:, :3, 3] = centre + 1.05 * (truth[:, :3, 3] - centre)
     res_near = _check(world, near, t_ns[sel])
     assert res_near is not None and res_near.counted and not res_near.wrong
+
+
+@pytest.mark.parametrize("noise_m", [0.005, 0.01])
+def test_imu_fit_scale_check_reads_noisy_poses_the_alignment_cannot(noise_m):
+    """The same 5 s as above with every keyframe position a few mm off (a smoother's poses are
+    25-60 mm off a similarity of the truth): the alignment's scale multiplies position
+    differences next to free velocities, so the noise shrinks it (measured 0.27 at 5 mm, 0.09 at
+    10 mm, not counted), while ``check_scale_by_imu_fit`` (the positions fitted as a similarity
+    of the IMU's trajectory) reads the true and the 30 % runaway poses within 0.5 % (measured
+    0.997 / 0.767 at both noises), counted, flags only the runaway and finds the newest
+    keyframe's velocity within 1.1 cm/s; its residual is the noise (8 / 16 mm)."""
+    world = generate_world(duration_s=6.0, seed=0, start_s=3.0)
+    t_ns = np.array([k.t_ns for k in world.keyframes])
+    sel = t_ns >= t_ns[-1] - 5_000_000_000
+    truth = world.world_from_body_gt[sel]
+    centre = truth[-1, :3, 3]
+    imu = world.imu.arrays
+    v_true = world.trajectory.sample(np.array([(t_ns[sel][-1] - 1_000_000_000) * 1e-9]))
+    noise = np.random.default_rng(0).normal(0.0, noise_m, (len(truth), 3))
+    for factor in (1.0, 1.3):
+        poses = truth.copy()
+        poses[:, :3, 3] = centre + factor * (truth[:, :3, 3] - centre) + noise
+        aligned = _check(world, poses, t_ns[sel])
+        assert aligned is not None and not aligned.counted and aligned.scale < 0.5
+        res = check_scale_by_imu_fit(
+            t_ns[sel],
+            poses,
+            imu.t_ns,
+            imu.gyro_rad_s,
+            imu.accel_m_s2,
+            world.calibration.imu,
+            imu_gap_max_s=0.1,
+            bias_gyro_rad_s=world.imu.gyro_bias_rad_s[0],
+            max_scale_std=0.03,
+            tolerance=0.1,
+        )
+        assert res is not None and res.counted and res.wrong == (factor > 1.0)
+        assert res.scale == pytest.approx(1.0 / factor, rel=0.005)
+        assert np.linalg.norm(res.velocity_m_s - v_true.velocities_m_s[0]) < 0.015
+        assert res.residual_m == pytest.approx(np.sqrt(3.0) * noise_m, rel=0.25)
+
+
+def test_scale_check_streak_counts_wrong_checks_on_one_side():
+    """``backend.mono_scale_check_repeats``' count: consecutive wrong checks on one side add up,
+    one on the other side starts again at 1, a right or uncounted one resets it."""
+    v = np.zeros(3)
+    high, low = ScaleCheck(1.2, 0.01, True, True, v), ScaleCheck(0.8, 0.01, True, True, v)
+    right, loose = ScaleCheck(1.2, 0.01, True, False, v), ScaleCheck(1.2, 0.5, False, False, v)
+    streak = 0
+    seen = []
+    for check in (high, high, low, low, low, right, high, loose, low):
+        streak = scale_check_streak(streak, check)
+        seen.append(streak)
+    assert seen == [1, 2, -1, -2, -3, 0, 1, 0, -1]
 
 
 def _gentle_world(seed: int, point_sigma_m: float = 0.02):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 from slam.core.bounds import bounded
 
@@ -191,9 +192,18 @@ class BackendConfig:
     alignment on metric poses: scale 1 expected); 0: no check."""
     mono_scale_check_every_s: float = bounded(1.0, gt=0)
     """How often the scale check runs (keyframe times)."""
+    mono_scale_check_method: Literal["alignment", "imu_fit"] = "alignment"
+    """"alignment": the start's alignment on the smoother's poses (its scale multiplies their
+    position differences, so their noise shrinks it: 0.06-0.58 on a smoother whose truth is
+    1.0); "imu_fit": the poses' positions fitted as a similarity of the IMU's trajectory over
+    the window, bias free (``mono_init.check_scale_by_imu_fit``: 0.94-1.15 on good runs, but
+    no consistent scale in a slipping smoother's poses; BENCHMARKS.md, scalecheck20)."""
     mono_scale_check_with_bias: bool = False
     """The scale check aligns the IMU less the smoother's newest accelerometer bias (else the
     raw IMU, its bias held near 0 by the start's prior)."""
+    mono_scale_check_repeats: int = bounded(1, ge=1)
+    """A correction needs this many counted checks in a row off by more than the tolerance on
+    the same side (the newest one's scale and velocity are used); 1: every such check."""
     mono_scale_check_max_std: float = bounded(0.03, gt=0)
     """A check counts only when its scale's standard deviation is under this fraction."""
     mono_scale_check_tolerance: float = bounded(0.1, gt=0, lt=1)

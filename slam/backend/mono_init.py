@@ -437,6 +437,9 @@ class ScaleCheck:
     """Counted and off 1 by more than the tolerance."""
     velocity_m_s: np.ndarray
     """(3,) the newest keyframe's metric velocity from the alignment, the poses' frame."""
+    residual_m: float = float("nan")
+    """:func:`check_scale_by_imu_fit` only: the rms distance of the checked positions from the
+    fitted IMU trajectory (a few mm when they are a similarity of one the IMU explains)."""
 
 
 def check_scale(
@@ -474,6 +477,98 @@ def check_scale(
     wrong = res.accepted and abs(res.scale - 1.0) > tolerance
     velocity = np.asarray(res.velocities_vo_m_s[-1], float)
     return ScaleCheck(res.scale, res.scale_std, res.accepted, wrong, velocity)
+
+
+def scale_check_streak(streak: int, check: ScaleCheck) -> int:
+    """The count of consecutive wrong checks off on the same side, signed (+ too large, -
+    too small), after ``check``: a right or uncounted check resets it to 0, a wrong one on the
+    other side to +-1 (``backend.mono_scale_check_repeats`` corrects at its magnitude)."""
+    if not check.wrong:
+        return 0
+    side = 1 if check.scale > 1.0 else -1
+    return streak + side if side * streak > 0 else side
+
+
+def check_scale_by_imu_fit(
+    t_kf_ns: np.ndarray,
+    world_from_body: np.ndarray,
+    imu_t_ns: np.ndarray,
+    imu_gyro_rad_s: np.ndarray,
+    imu_accel_m_s2: np.ndarray,
+    imu: ImuCalibration,
+    imu_gap_max_s: float,
+    bias_gyro_rad_s: np.ndarray,
+    max_scale_std: float,
+    tolerance: float,
+) -> ScaleCheck | None:
+    """The scale of metric keyframe poses (a smoother's estimates in its gravity-aligned world,
+    gravity ``-g z``) read the other way round from :func:`check_scale`: the *positions* are
+    fitted as a similarity of the IMU's own trajectory over the window,
+
+        p_k = a + b tau_k + s (P_k + JP_k ba)
+
+    (``P_k``: the specific force, rotated by the poses' rotations and with gravity, integrated
+    twice from keyframe 0 at rest; ``JP_k`` its accelerometer-bias Jacobian; ``a``, ``b``, ``s``,
+    ``s ba`` linear unknowns). The noisy positions are on the measured side, so their noise does
+    not shrink ``s``: the alignment, whose unknown scale multiplies position differences next to
+    free velocities, reads metric poses 3-11 mm off the truth at 0.03-1.03 and a smoother's at
+    0.06-0.58 (BENCHMARKS.md, scalecheck20). Returns ``scale`` = 1 / s (metric metres per metre of
+    the poses, as :func:`check_scale`), its standard deviation from the residuals, the newest
+    keyframe's metric velocity (``b / s + V_last + JV_last ba``) and the residual; counted when
+    ``s`` > 0 and the std is under ``max_scale_std`` of the scale. None when the IMU does not
+    cover the keyframes or there are fewer than 6."""
+    k_count = len(t_kf_ns)
+    if k_count < 6:
+        return None
+    params = preintegration_params(imu)
+    pieces = []
+    for i in range(k_count - 1):
+        p = integration_pieces(
+            imu_t_ns, imu_gyro_rad_s, imu_accel_m_s2, int(t_kf_ns[i]), int(t_kf_ns[i + 1]),
+            imu_gap_max_s,
+        )  # fmt: skip
+        if p is None:
+            return None
+        pieces.append(p)
+    deltas = _preintegrated(params, pieces, np.asarray(bias_gyro_rad_s, float))
+    gravity = np.asarray(params.n_gravity, dtype=float)
+    rot = world_from_body[:, :3, :3]
+    pos_p = np.zeros((k_count, 3))
+    vel_p = np.zeros((k_count, 3))
+    jac_p = np.zeros((k_count, 3, 3))
+    jac_v = np.zeros((k_count, 3, 3))
+    tau = np.zeros(k_count)
+    for i, (dt, dp, dv, jp, jv) in enumerate(deltas):
+        pos_p[i + 1] = pos_p[i] + vel_p[i] * dt + 0.5 * gravity * dt * dt + rot[i] @ dp
+        jac_p[i + 1] = jac_p[i] + jac_v[i] * dt + rot[i] @ jp
+        vel_p[i + 1] = vel_p[i] + gravity * dt + rot[i] @ dv
+        jac_v[i + 1] = jac_v[i] + rot[i] @ jv
+        tau[i + 1] = tau[i] + dt
+    a_mat = np.zeros((3 * k_count, 10))
+    for k in range(k_count):
+        rows = slice(3 * k, 3 * k + 3)
+        a_mat[rows, 0:3] = np.eye(3)
+        a_mat[rows, 3:6] = tau[k] * np.eye(3)
+        a_mat[rows, 6] = pos_p[k]
+        a_mat[rows, 7:10] = jac_p[k]
+    b_vec = world_from_body[:, :3, 3].reshape(-1)
+    x = np.linalg.lstsq(a_mat, b_vec, rcond=None)[0]
+    res = b_vec - a_mat @ x
+    var = float(res @ res) / max(len(b_vec) - 10, 1)
+    try:
+        s_std = float(np.sqrt(var * np.linalg.inv(a_mat.T @ a_mat)[6, 6]))
+    except np.linalg.LinAlgError:
+        return None
+    s = float(x[6])
+    residual = float(np.sqrt(res @ res / k_count))
+    if not (np.isfinite(s) and s > 0 and np.isfinite(s_std)):
+        return ScaleCheck(float("nan"), float("inf"), False, False, np.zeros(3), residual)
+    scale = 1.0 / s
+    scale_std = s_std / (s * s)
+    counted = scale_std <= max_scale_std * scale
+    velocity = x[3:6] / s + vel_p[-1] + jac_v[-1] @ (x[7:10] / s)
+    wrong = counted and abs(scale - 1.0) > tolerance
+    return ScaleCheck(scale, scale_std, counted, wrong, velocity, residual)
 
 
 @dataclass(frozen=True, eq=False)

@@ -58,7 +58,9 @@ from slam.backend.mono_init import (
     align_mono,
     batch_start,
     check_scale,
+    check_scale_by_imu_fit,
     refine_vo_poses,
+    scale_check_streak,
     start_gate,
 )
 from slam.backend.time_offset import OnlineTimeOffset
@@ -224,6 +226,8 @@ class VioBackend:
         # monocular scale check: (t_ns, world_from_body) of recent keyframes, newest estimate
         self._kf_history: dict[int, np.ndarray] = {}
         self._last_scale_check_ns = 0
+        # consecutive counted scale checks off beyond the tolerance on one side (signed)
+        self._scale_check_streak = 0
         self._smoother: FixedLagSmoother | None = None
         self._values = gtsam.Values()
         self._states: list[_State] = []
@@ -653,35 +657,53 @@ class VioBackend:
         t, g, a = self.imu.arrays()
         if cfg.mono_scale_check_with_bias:
             a = a - vals.atConstantBias(B(self._states[-1].k)).accelerometer()
-        res = check_scale(
-            times,
-            poses,
-            self._body_from_cam[0],
-            t,
-            g,
-            a,
-            self.imu_calibration,
-            cfg.imu_gap_max_s,
-            cfg.mono_init_max_gravity_error,
-            cfg.mono_init_max_scale_disagreement,
-            cfg.mono_scale_check_max_std,
-            cfg.mono_scale_check_tolerance,
-        )
+        if cfg.mono_scale_check_method == "imu_fit":
+            res = check_scale_by_imu_fit(
+                times,
+                poses,
+                t,
+                g,
+                a,
+                self.imu_calibration,
+                cfg.imu_gap_max_s,
+                vals.atConstantBias(B(self._states[-1].k)).gyroscope(),
+                cfg.mono_scale_check_max_std,
+                cfg.mono_scale_check_tolerance,
+            )
+        else:
+            res = check_scale(
+                times,
+                poses,
+                self._body_from_cam[0],
+                t,
+                g,
+                a,
+                self.imu_calibration,
+                cfg.imu_gap_max_s,
+                cfg.mono_init_max_gravity_error,
+                cfg.mono_init_max_scale_disagreement,
+                cfg.mono_scale_check_max_std,
+                cfg.mono_scale_check_tolerance,
+            )
         if res is None:
             return None
+        self._scale_check_streak = scale_check_streak(self._scale_check_streak, res)
+        correct = res.wrong and abs(self._scale_check_streak) >= cfg.mono_scale_check_repeats
         if len(self.stats.mono_scale_checks) < 500:
-            self.stats.mono_scale_checks.append(
-                {
-                    "t_ns": kf.t_ns,
-                    "keyframes": len(times),
-                    "scale": round(res.scale, 4),
-                    "scale_std": round(res.scale_std, 4),
-                    "counted": res.counted,
-                    "corrected": res.wrong,
-                }
-            )
-        if not res.wrong:
+            entry: dict[str, Any] = {
+                "t_ns": kf.t_ns,
+                "keyframes": len(times),
+                "scale": round(res.scale, 4),
+                "scale_std": round(res.scale_std, 4),
+                "counted": res.counted,
+                "corrected": correct,
+            }
+            if np.isfinite(res.residual_m):
+                entry["residual_m"] = round(res.residual_m, 5)
+            self.stats.mono_scale_checks.append(entry)
+        if not correct:
             return None
+        self._scale_check_streak = 0
         self.stats.mono_scale_corrections += 1
         last = self._states[-1]
         pose = vals.atPose3(X(last.k))
