@@ -145,6 +145,27 @@ def _preintegrated(
     return out
 
 
+def _keyframe_pieces(
+    t_kf_ns: np.ndarray,
+    imu_t_ns: np.ndarray,
+    imu_gyro_rad_s: np.ndarray,
+    imu_accel_m_s2: np.ndarray,
+    imu_gap_max_s: float,
+) -> list | None:
+    """The IMU's pieces (:func:`integration_pieces`) over each interval between consecutive
+    keyframes; None when one interval is not covered."""
+    pieces = []
+    for i in range(len(t_kf_ns) - 1):
+        p = integration_pieces(
+            imu_t_ns, imu_gyro_rad_s, imu_accel_m_s2, int(t_kf_ns[i]), int(t_kf_ns[i + 1]),
+            imu_gap_max_s,
+        )  # fmt: skip
+        if p is None:
+            return None
+        pieces.append(p)
+    return pieces
+
+
 def _solve(
     deltas: list[tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
     rot: np.ndarray,
@@ -326,15 +347,9 @@ def align_mono(
     if k_count < 4:
         return None
     params = preintegration_params(imu)
-    pieces = []
-    for i in range(k_count - 1):
-        p = integration_pieces(
-            imu_t_ns, imu_gyro_rad_s, imu_accel_m_s2, int(t_kf_ns[i]), int(t_kf_ns[i + 1]),
-            imu_gap_max_s,
-        )  # fmt: skip
-        if p is None:
-            return None
-        pieces.append(p)
+    pieces = _keyframe_pieces(t_kf_ns, imu_t_ns, imu_gyro_rad_s, imu_accel_m_s2, imu_gap_max_s)
+    if pieces is None:
+        return None
     rot = world_from_body_vo[:, :3, :3]
     lever_m = np.asarray(body_from_cam0, float)[:3, 3]
     centres = world_from_body_vo[:, :3, 3] + rot @ lever_m
@@ -521,15 +536,9 @@ def check_scale_by_imu_fit(
     if k_count < 6:
         return None
     params = preintegration_params(imu)
-    pieces = []
-    for i in range(k_count - 1):
-        p = integration_pieces(
-            imu_t_ns, imu_gyro_rad_s, imu_accel_m_s2, int(t_kf_ns[i]), int(t_kf_ns[i + 1]),
-            imu_gap_max_s,
-        )  # fmt: skip
-        if p is None:
-            return None
-        pieces.append(p)
+    pieces = _keyframe_pieces(t_kf_ns, imu_t_ns, imu_gyro_rad_s, imu_accel_m_s2, imu_gap_max_s)
+    if pieces is None:
+        return None
     deltas = _preintegrated(params, pieces, np.asarray(bias_gyro_rad_s, float))
     gravity = np.asarray(params.n_gravity, dtype=float)
     rot = world_from_body[:, :3, :3]
