@@ -151,22 +151,54 @@ def verify_loop(
     inl = inliers.reshape(-1)
     if len(inl) < p.min_inliers:
         return None
-    # Refine on the inliers, then re-select inliers with the refined pose.
-    rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], k, dist, rvec, tvec)
+    return _refined_verification(obj, img, q_idx, c_idx, k, dist, rvec, tvec, inl, p)
+
+
+def _within_reprojection(
+    obj: np.ndarray,
+    img: np.ndarray,
+    k: np.ndarray,
+    dist: np.ndarray | None,
+    rvec: np.ndarray,
+    tvec: np.ndarray,
+    reprojection_px: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(reprojection errors (N,) px, mask (N,) of the points in front of the camera and within
+    ``reprojection_px``) of ``obj`` under the pose (``rvec``, ``tvec``: camera from points)."""
     projected, _ = cv2.projectPoints(obj, rvec, tvec, k, dist)
     err = np.linalg.norm(projected.reshape(-1, 2) - img, axis=1)
     in_front = (obj @ cv2.Rodrigues(rvec)[0].T + tvec.reshape(3))[:, 2] > 0
-    inl = np.flatnonzero((err < p.reprojection_px) & in_front)
-    if len(inl) < p.min_inliers or len(inl) < p.min_inlier_ratio * len(q_idx):
+    return err, (err < reprojection_px) & in_front
+
+
+def _refined_verification(
+    obj: np.ndarray,
+    img: np.ndarray,
+    q_idx: np.ndarray,
+    c_idx: np.ndarray,
+    k: np.ndarray,
+    dist: np.ndarray | None,
+    rvec: np.ndarray,
+    tvec: np.ndarray,
+    inl: np.ndarray,
+    p: VerifyParams,
+) -> LoopVerification | None:
+    """The pose refined (Levenberg-Marquardt) on the inliers ``inl`` (indices or a mask), the
+    inliers selected again with it; None below ``min_inliers`` or ``min_inlier_ratio`` of the
+    ``len(q_idx)`` matches."""
+    rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], k, dist, rvec, tvec)
+    err, within = _within_reprojection(obj, img, k, dist, rvec, tvec, p.reprojection_px)
+    sel = np.flatnonzero(within)
+    if len(sel) < p.min_inliers or len(sel) < p.min_inlier_ratio * len(q_idx):
         return None
     query_cam_from_candidate = make_transform(cv2.Rodrigues(rvec)[0], tvec.reshape(3))
     return LoopVerification(
         candidate_cam_from_query_cam=invert_transform(query_cam_from_candidate),
-        num_inliers=int(len(inl)),
+        num_inliers=int(len(sel)),
         num_matches=int(len(q_idx)),
-        query_indices=q_idx[inl],
-        candidate_indices=c_idx[inl],
-        rms_reprojection_px=float(np.sqrt(np.mean(err[inl] ** 2))),
+        query_indices=q_idx[sel],
+        candidate_indices=c_idx[sel],
+        rms_reprojection_px=float(np.sqrt(np.mean(err[sel] ** 2))),
     )
 
 
@@ -397,30 +429,14 @@ def _guided_verification(
     query_cam_from_candidate = invert_transform(first.candidate_cam_from_query_cam)
     rvec = cv2.Rodrigues(query_cam_from_candidate[:3, :3])[0]
     tvec = query_cam_from_candidate[:3, 3].reshape(3, 1).copy()
-    inl = np.zeros(len(obj), bool)
-    for _ in range(2):
-        projected, _ = cv2.projectPoints(obj, rvec, tvec, k, None)
-        err = np.linalg.norm(projected.reshape(-1, 2) - img, axis=1)
-        in_front = (obj @ cv2.Rodrigues(rvec)[0].T + tvec.reshape(3))[:, 2] > 0
-        inl = (err < p.reprojection_px) & in_front
-        if inl.sum() < max(p.min_inliers, 4):
-            return None
-        rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], k, None, rvec, tvec)
-    projected, _ = cv2.projectPoints(obj, rvec, tvec, k, None)
-    err = np.linalg.norm(projected.reshape(-1, 2) - img, axis=1)
-    in_front = (obj @ cv2.Rodrigues(rvec)[0].T + tvec.reshape(3))[:, 2] > 0
-    sel = np.flatnonzero((err < p.reprojection_px) & in_front)
-    if len(sel) < p.min_inliers or len(sel) < p.min_inlier_ratio * len(q_idx):
+    _, inl = _within_reprojection(obj, img, k, None, rvec, tvec, p.reprojection_px)
+    if inl.sum() < max(p.min_inliers, 4):
         return None
-    pose = make_transform(cv2.Rodrigues(rvec)[0], tvec.reshape(3))
-    return LoopVerification(
-        candidate_cam_from_query_cam=invert_transform(pose),
-        num_inliers=int(len(sel)),
-        num_matches=int(len(q_idx)),
-        query_indices=q_idx[sel],
-        candidate_indices=c_idx[sel],
-        rms_reprojection_px=float(np.sqrt(np.mean(err[sel] ** 2))),
-    )
+    rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], k, None, rvec, tvec)
+    _, inl = _within_reprojection(obj, img, k, None, rvec, tvec, p.reprojection_px)
+    if inl.sum() < max(p.min_inliers, 4):
+        return None
+    return _refined_verification(obj, img, q_idx, c_idx, k, None, rvec, tvec, inl, p)
 
 
 def verify_loop_landmarks(
