@@ -162,3 +162,22 @@ def test_inertial_messages_round_trip(imu_world) -> None:
     np.testing.assert_array_equal(end.inertial[7].bias_gyro_rad_s, state.bias_gyro_rad_s)
     moved = state.with_state(np.ones(3), np.full(3, 2.0), np.full(3, 3.0))
     assert moved.piece_dt_s is state.piece_dt_s and moved.velocity_world_m_s.tolist() == [1, 1, 1]
+
+
+def test_refit_gate_decides_which_fitted_matrices_are_used(imu_world) -> None:
+    """``loop.global_ba_imu_refit_max_std`` (``GlobalBaParams.imu_refit_max_std``): its
+    default is main's gate; a gate below every fit's uncertainty leaves both sensors as read,
+    one above it uses both fitted matrices (0.3 % scale errors: not the identity)."""
+    assert LoopClosureConfig().global_ba_imu_refit_max_std == GlobalBaParams().imu_refit_max_std
+    calib, obs, _, poses, edges, inertial, t_ns = imu_world
+    used = {}
+    for gate in (1e-9, 1.0):
+        p = GlobalBaParams(pixel_sigma_px=0.3, imu_refit_max_std=gate)
+        res = global_bundle_adjustment(
+            calib, obs, poses, edges, [], 0, t_ns, p, inertial=inertial, imu=calib.imu
+        )
+        assert res is not None and res.imu_intrinsics is not None
+        assert 0.0 < max(res.imu_scale_std) < 1.0  # the open gate is above both fits' spread
+        used[gate] = (res.imu_intrinsics.gyro_matrix, res.imu_intrinsics.accel_matrix)
+    assert all(np.array_equal(m, np.eye(3)) for m in used[1e-9])
+    assert all(np.abs(np.diag(m) - 1.0).max() > 5e-4 for m in used[1.0])

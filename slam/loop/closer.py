@@ -957,6 +957,7 @@ class LoopCloser:
                 imu_gyro_walk_factor=c.global_ba_imu_gyro_walk_factor,
                 imu_walk_gate=c.global_ba_imu_walk_gate,
                 imu_accel_bias_smoothing=c.global_ba_imu_accel_bias_smoothing,
+                imu_refit_max_std=c.global_ba_imu_refit_max_std,
             ),
             inertial=inertial,
             imu=self.calib.imu,
