@@ -237,7 +237,7 @@ class LoopClosureConfig:
     factors are all below this (fraction; else that sensor stays as read), and the second
     round's tighter IMU allowance (0.1 %) applies only when both sensors' are. On room-loop
     the accelerometer's fit is 0.09-0.11 % uncertain, so at 0.0007 it is never used there;
-    0.0015 uses it (within 0.03-0.1 % of the truth on three realistic renders) and makes the
+    0.0015 uses it (within 0.11 % of the truth on three realistic renders) and makes the
     loop-closed ATE worse on 10 of 12 room-loop runs (clean, realistic, each half alone): the
     tight allowance then also holds the gyro's fit, whose y-axis error (0.05-0.15 %) its 0.03 %
     standard deviation understates (likely why; not isolated). Main's 0.0007 by default
