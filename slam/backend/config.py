@@ -26,6 +26,16 @@ class BackendConfig:
     IMU factor (the estimator runs on vision, with a weak VO relative-pose factor)."""
     imu_buffer_s: float = bounded(30.0, gt=0)
     """IMU history kept (seconds before the newest keyframe) for integration and resets."""
+    keyframe_waits_for_imu: bool = False
+    """The back end's stage hands a keyframe to the estimator only once an IMU reading at or
+    after its stamp has arrived (at the latest with the next keyframe, or at the end of the
+    input), as VINS-Mono's estimator waits. Without it a keyframe whose next reading is still
+    on its way (the player hands the readings on with each frame, up to the frame's stamp) has
+    its interval's last piece integrated at the last reading held, not interpolated towards the
+    next: in sequential and real-time runs on the fair V1_01 renders (readings 3 us after the
+    frames) every interval lost half of one reading, and the global adjustment's monocular
+    scale came out 0.2-0.3 % small (``--speed max`` runs, whose back end lags, were spared:
+    BENCHMARKS.md, speedmax21). Off: a keyframe goes on at once."""
 
     imu_gyro_scale_error: float = bounded(0.005, ge=0, le=0.2)
     """Gyro scale / axis error (fraction) the IMU noise model allows for: each keyframe
