@@ -210,6 +210,18 @@ class BackendConfig:
     """A counted check whose scale is off 1 by more than this fraction restarts the smoother
     at the newest state with the check's velocity (the scale follows the velocity)."""
 
+    mono_reinit_residual_m: float = bounded(0.0, ge=0)
+    """Monocular, with the scale check (``mono_scale_check_window_s``): 0 = off. Else every
+    check also fits the window's smoother positions to the IMU's trajectory
+    (``mono_init.check_scale_by_imu_fit``, whatever ``mono_scale_check_method``), and a fit
+    whose rms residual is above this re-initialises: the smoother is dropped and the monocular
+    start (alignment, window batch) is redone on the keyframes from then on, retried at each
+    keyframe as the first start is; the front end takes the new start's scale. A smoother whose
+    scale slips is no similarity of any trajectory the IMU explains: on room-figure8 its
+    residual rose from 1-4 mm to 11-37 mm within 1-2 s (BENCHMARKS.md, scalecheck20, reinit21)."""
+    mono_reinit_max: int = bounded(3, ge=1)
+    """At most this many such re-initialisations per run."""
+
     # --- smoother -------------------------------------------------------------------------------
     lag_s: float = bounded(1.0, gt=0)
     """Fixed-lag smoother window in seconds (states older than this are marginalised); 1 s is

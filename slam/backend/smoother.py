@@ -57,6 +57,7 @@ from slam.backend.init import (
 from slam.backend.mono_init import (
     align_mono,
     batch_start,
+    chained_vo_poses,
     check_scale,
     check_scale_by_imu_fit,
     refine_vo_poses,
@@ -157,6 +158,9 @@ class BackendStats:
     """Monocular: the scale checks after the start (``mono_scale_check_window_s``): time,
     scale, its standard deviation, whether counted, whether the smoother was corrected."""
     mono_scale_corrections: int = 0
+    mono_reinits: int = 0
+    """Monocular, ``mono_reinit_residual_m``: times the start was redone after a scale check's
+    IMU-fit residual said the smoother slipped."""
     mono_init_batch_scale_change: float = 0.0
     """Monocular, ``mono_init_batch``: the start's batch adjustment moved the alignment's scale
     by this factor (0: no batch ran; 1 +- its failure: the alignment's start was used)."""
@@ -228,6 +232,10 @@ class VioBackend:
         self._last_scale_check_ns = 0
         # consecutive counted scale checks off beyond the tolerance on one side (signed)
         self._scale_check_streak = 0
+        # monocular re-initialisation (``mono_reinit_residual_m``): True while the start is
+        # redone on keyframes the front end moved by the old smoother's corrections
+        self._reinit = False
+        self._restarts = 0  # re-initialisations the published estimates carry
         self._smoother: FixedLagSmoother | None = None
         self._values = gtsam.Values()
         self._states: list[_State] = []
@@ -385,6 +393,8 @@ class VioBackend:
             est = self._add_with_recovery(kf, kf_pose_vo)
             if self._monocular and self.config.mono_scale_check_window_s > 0:
                 est = self._check_mono_scale(kf) or est
+                if not self._initialized:  # re-initialising: the start is redone from here
+                    est = self._try_initialise(kf, kf_pose_vo)
         self._segment_id = kf.segment_id
         return est
 
@@ -487,11 +497,18 @@ class VioBackend:
             return self._uninitialised_estimate(kf, pose_vo)
         t, g, a = self.imu.arrays()
         body_from_cam0 = self._body_from_cam[0]
+        raw_vo = np.array([k.world_from_body_vo for k in kfs])
         points: dict[int, np.ndarray] = {}
-        for k in kfs:  # the newest front-end position of each landmark
-            points.update(zip(k.landmark_ids.tolist(), np.asarray(k.points_world_vo, float)))
+        if self._reinit:  # the front end's own motion, without the corrections it was given
+            raw_vo, moved = chained_vo_poses(kfs)
+            for k, m in zip(kfs, moved, strict=True):
+                pts = np.asarray(k.points_world_vo, float) @ m[:3, :3].T + m[:3, 3]
+                points.update(zip(k.landmark_ids.tolist(), pts))
+        else:
+            for k in kfs:  # the newest front-end position of each landmark
+                points.update(zip(k.landmark_ids.tolist(), np.asarray(k.points_world_vo, float)))
         poses_vo = refine_vo_poses(
-            np.array([k.world_from_body_vo for k in kfs]),
+            raw_vo,
             [(np.asarray(k.landmark_ids), np.asarray(k.pixels_left_undist)) for k in kfs],
             points,
             self._k_mats[0],
@@ -553,6 +570,10 @@ class VioBackend:
                 prior = batch.prior
                 newest = scale_body_pose(poses_vo[-1], scale, body_from_cam0)
                 self._world_from_vo = pose_w @ invert_transform(newest)
+        if self._reinit:
+            # the front end's map is already in the world: it scales it by this again
+            self._reinit = False
+            self._restarts += 1
         self._vo_scale = scale
         self.stats.vo_scale = scale
         self.stats.init_state = "initialised"
@@ -685,6 +706,25 @@ class VioBackend:
                 cfg.mono_scale_check_max_std,
                 cfg.mono_scale_check_tolerance,
             )
+        residual = res.residual_m if res is not None else float("nan")
+        reinit_at = cfg.mono_reinit_residual_m
+        if reinit_at > 0 and cfg.mono_scale_check_method != "imu_fit":
+            fit = check_scale_by_imu_fit(
+                times,
+                poses,
+                t,
+                g,
+                a,
+                self.imu_calibration,
+                cfg.imu_gap_max_s,
+                vals.atConstantBias(B(self._states[-1].k)).gyroscope(),
+                cfg.mono_scale_check_max_std,
+                cfg.mono_scale_check_tolerance,
+            )
+            residual = fit.residual_m if fit is not None else float("nan")
+        if reinit_at > 0 and residual > reinit_at and self.stats.mono_reinits < cfg.mono_reinit_max:
+            self._reinitialise(kf, residual)
+            return None
         if res is None:
             return None
         self._scale_check_streak = scale_check_streak(self._scale_check_streak, res)
@@ -698,8 +738,8 @@ class VioBackend:
                 "counted": res.counted,
                 "corrected": correct,
             }
-            if np.isfinite(res.residual_m):
-                entry["residual_m"] = round(res.residual_m, 5)
+            if np.isfinite(residual):
+                entry["residual_m"] = round(residual, 5)
             self.stats.mono_scale_checks.append(entry)
         if not correct:
             return None
@@ -722,6 +762,39 @@ class VioBackend:
         )
         self._add_observations_as_tracks(kf, last.k)
         return self._make_estimate()
+
+    def _reinitialise(self, kf: Keyframe, residual_m: float) -> None:
+        """``mono_reinit_residual_m``: the smoother's recent positions are no similarity of the
+        IMU's trajectory (``residual_m`` rms): its scale slipped, and no correction of its own
+        states can say by how much (BENCHMARKS.md, scalecheck20). It is dropped and the monocular
+        start's retry path takes over from this keyframe on (:meth:`_try_mono_initialise`, on
+        the front end's keyframes chained by their own relative poses); until a start is
+        accepted the estimates are uninitialised, which the front end does not apply."""
+        self.stats.mono_reinits += 1
+        msg = (
+            f"monocular scale check: IMU-fit residual {residual_m * 1e3:.1f} mm at keyframe "
+            f"{kf.keyframe_id}, the start is redone"
+        )
+        log.warning(msg)
+        if len(self.stats.failures) < 100:
+            self.stats.failures.append(msg)
+        if len(self.stats.mono_scale_checks) < 500:
+            self.stats.mono_scale_checks.append(
+                {"t_ns": kf.t_ns, "residual_m": round(residual_m, 5), "reinit": True}
+            )
+        self._initialized = False
+        self._reinit = True
+        self._smoother = None
+        self._states = []
+        self._landmarks = set()
+        self._tracks = {}
+        self._smart = {}
+        self._map_alive = set()
+        self._positions = {}  # the slipped smoother's landmarks: no map for the new start
+        self._kf_history = {}
+        self._scale_check_streak = 0
+        self._init_keyframes = []
+        self._last_good = None
 
     def _moving_init(self, kfs: list[Keyframe]) -> MovingInitResult | None:
         t, g, a = self.imu.arrays()
@@ -753,7 +826,8 @@ class VioBackend:
     ) -> Estimate:
         self._initialized = True
         self.stats.init_method = method
-        self.stats.init_t_ns = kf.t_ns
+        if self.stats.init_t_ns < 0:  # the first start's (a re-initialisation keeps it)
+            self.stats.init_t_ns = kf.t_ns
         self._t_origin_ns = kf.t_ns
         self._init_keyframes = []
         log.info("back end initialised (%s start) at keyframe %d", method, kf.keyframe_id)
@@ -1399,6 +1473,7 @@ class VioBackend:
             landmark_ids=lids,
             landmark_positions_world=pts,
             vo_scale=self._vo_scale,
+            restarts=self._restarts,
             imu_intrinsics=None
             if self.intrinsics is None or self.intrinsics.applied.is_identity
             else self.intrinsics.applied,
