@@ -558,8 +558,10 @@ class VioBackend:
         vel_w = self._world_from_vo[:3, :3] @ res.velocities_vo_m_s[-1]
         bias = make_bias(res.bias_gyro_rad_s, res.bias_accel_m_s2)
         prior = None
+        # a re-initialisation's window is always batch adjusted: the smoother it replaces
+        # slipped within seconds of a start held by the loose ``prior_*`` sigmas
         if cfg.mono_init_batch and (
-            not cfg.mono_init_batch_span_only or len(kfs) < cfg.mono_init_keyframes
+            self._reinit or not cfg.mono_init_batch_span_only or len(kfs) < cfg.mono_init_keyframes
         ):
             batch = self._batch_start(kfs, poses_vo, points, scale, res.velocities_vo_m_s, bias)
             if batch is not None:
