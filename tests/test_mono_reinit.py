@@ -1,24 +1,19 @@
 """The monocular start redone when the smoother slips (``backend.mono_reinit_residual_m``,
 issue 18): a smoother whose positions stop being a similarity of the IMU's trajectory is
 detected by the scale check's IMU-fit residual and dropped, and the start's retry path starts a
-new one; the front end's keyframes over that window are chained by their own relative poses."""
+new one."""
 
 from __future__ import annotations
-
-import dataclasses
 
 import gtsam
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from datasets.synth.vio_world import SimWorld, generate_world
 from slam.backend import smoother
 from slam.backend.config import BackendConfig
-from slam.backend.mono_init import chained_vo_poses
 from slam.backend.smoother import VioBackend, X
 from slam.core.calibration import Calibration
-from slam.core.geometry import invert_transform, make_transform
 from slam.core.messages import Estimate, ImuSample, Keyframe
 
 SLIP_AFTER_S = 2.5  # after the start: where room-figure8's delayed smoothers slipped
@@ -141,35 +136,3 @@ def test_a_smoother_that_does_not_slip_is_left_alone(world):
     residuals = [c["residual_m"] for c in backend.stats.mono_scale_checks]
     assert residuals and max(residuals) < 0.005
     assert all(e.restarts == 0 for _, e in out)
-
-
-def test_keyframes_chained_without_the_corrections_between_them(world):
-    """Keyframes whose poses a front end moved between them (the old smoother's corrections)
-    chain to its own relative motion; a keyframe without a link keeps its pose."""
-    kfs = world.keyframes[10:16]
-    jumps = [make_transform(Rotation.from_rotvec([0, 0, 0.05 * i]).as_matrix(), [0.1 * i, 0, 0])
-             for i in range(len(kfs))]  # fmt: skip
-    moved = []
-    for i, k in enumerate(kfs):
-        prev = None if i == 0 else jumps[i] @ kfs[i - 1].world_from_body_vo
-        moved.append(
-            dataclasses.replace(
-                k,
-                world_from_body_vo=jumps[i] @ k.world_from_body_vo,
-                previous_keyframe_id=kfs[i - 1].keyframe_id if i else -1,
-                previous_keyframe_world_from_body=prev,
-            )
-        )
-    poses, to_chain = chained_vo_poses(moved)
-    true_rel = [invert_transform(a.world_from_body_vo) @ b.world_from_body_vo
-                for a, b in zip(kfs[:-1], kfs[1:])]  # fmt: skip
-    rel = [invert_transform(a) @ b for a, b in zip(poses[:-1], poses[1:])]
-    for r, t in zip(rel, true_rel, strict=True):
-        assert np.allclose(r, t, atol=1e-9)
-    assert np.allclose(poses[-1], moved[-1].world_from_body_vo)
-    for i, k in enumerate(moved):  # each keyframe's own frame taken to the chain's
-        assert np.allclose(to_chain[i] @ k.world_from_body_vo, poses[i], atol=1e-9)
-    # a broken link: the keyframe's pose as it is (in the frame of the one after it)
-    broken = [*moved[:3], dataclasses.replace(moved[3], previous_keyframe_id=-1), *moved[4:]]
-    poses_b, _ = chained_vo_poses(broken)
-    assert np.allclose(poses_b[2], to_chain[3] @ moved[2].world_from_body_vo)

@@ -69,8 +69,6 @@ from slam.backend.imu import (
 )
 from slam.backend.init import bias_corrected_deltas, estimate_gyro_bias
 from slam.core.calibration import ImuCalibration
-from slam.core.geometry import invert_transform
-from slam.core.messages import Keyframe
 
 
 @dataclass(frozen=True, eq=False)
@@ -320,29 +318,6 @@ def refine_vo_poses(
     c_out = c_in[0] + (c_out - c_out[0]) * ratio
     out[:, :3, 3] = c_out - out[:, :3, :3] @ lever
     return out
-
-
-def chained_vo_poses(keyframes: list[Keyframe]) -> tuple[np.ndarray, np.ndarray]:
-    """The front end's keyframe poses (``Keyframe.world_from_body_vo``, K of them) as one
-    chain of its own relative motions, in the newest keyframe's frame: each keyframe's pose of
-    the one before it (``previous_keyframe_world_from_body``, moved by the corrections since)
-    gives that step without the corrections the front end took from a smoother in between
-    (a re-initialisation's window: the old smoother's, which slipped). A step whose previous
-    keyframe is not the one before in the list keeps the keyframe's pose as it is. Returns the
-    (K, 4, 4) poses and, per keyframe, the (4, 4) transform from its frame to the chain's (for
-    its landmark positions)."""
-    k_count = len(keyframes)
-    poses = np.array([np.asarray(k.world_from_body_vo, float) for k in keyframes])
-    moved = np.repeat(np.eye(4)[None], k_count, axis=0)
-    for i in range(k_count - 1, 0, -1):
-        kf, before = keyframes[i], keyframes[i - 1]
-        prev = kf.previous_keyframe_world_from_body
-        if prev is None or kf.previous_keyframe_id != before.keyframe_id:
-            poses[i - 1] = moved[i] @ poses[i - 1]
-        else:  # before's pose in kf's frame, taken on to the chain's frame
-            poses[i - 1] = moved[i] @ np.asarray(prev, float)
-        moved[i - 1] = poses[i - 1] @ invert_transform(np.asarray(before.world_from_body_vo, float))
-    return poses, moved
 
 
 def align_mono(

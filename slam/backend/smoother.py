@@ -57,7 +57,6 @@ from slam.backend.init import (
 from slam.backend.mono_init import (
     align_mono,
     batch_start,
-    chained_vo_poses,
     check_scale,
     check_scale_by_imu_fit,
     refine_vo_poses,
@@ -233,7 +232,7 @@ class VioBackend:
         # consecutive counted scale checks off beyond the tolerance on one side (signed)
         self._scale_check_streak = 0
         # monocular re-initialisation (``mono_reinit_residual_m``): True while the start is
-        # redone on keyframes the front end moved by the old smoother's corrections
+        # redone (the front end's map is already in the world; it is scaled again)
         self._reinit = False
         self._restarts = 0  # re-initialisations the published estimates carry
         self._smoother: FixedLagSmoother | None = None
@@ -497,18 +496,11 @@ class VioBackend:
             return self._uninitialised_estimate(kf, pose_vo)
         t, g, a = self.imu.arrays()
         body_from_cam0 = self._body_from_cam[0]
-        raw_vo = np.array([k.world_from_body_vo for k in kfs])
         points: dict[int, np.ndarray] = {}
-        if self._reinit:  # the front end's own motion, without the corrections it was given
-            raw_vo, moved = chained_vo_poses(kfs)
-            for k, m in zip(kfs, moved, strict=True):
-                pts = np.asarray(k.points_world_vo, float) @ m[:3, :3].T + m[:3, 3]
-                points.update(zip(k.landmark_ids.tolist(), pts))
-        else:
-            for k in kfs:  # the newest front-end position of each landmark
-                points.update(zip(k.landmark_ids.tolist(), np.asarray(k.points_world_vo, float)))
+        for k in kfs:  # the newest front-end position of each landmark
+            points.update(zip(k.landmark_ids.tolist(), np.asarray(k.points_world_vo, float)))
         poses_vo = refine_vo_poses(
-            raw_vo,
+            np.array([k.world_from_body_vo for k in kfs]),
             [(np.asarray(k.landmark_ids), np.asarray(k.pixels_left_undist)) for k in kfs],
             points,
             self._k_mats[0],
@@ -770,8 +762,8 @@ class VioBackend:
         IMU's trajectory (``residual_m`` rms): its scale slipped, and no correction of its own
         states can say by how much (BENCHMARKS.md, scalecheck20). It is dropped and the monocular
         start's retry path takes over from this keyframe on (:meth:`_try_mono_initialise`, on
-        the front end's keyframes chained by their own relative poses); until a start is
-        accepted the estimates are uninitialised, which the front end does not apply."""
+        the front end's keyframes from here, its window always batch adjusted); until a start
+        is accepted the estimates are uninitialised, which the front end does not apply."""
         self.stats.mono_reinits += 1
         msg = (
             f"monocular scale check: IMU-fit residual {residual_m * 1e3:.1f} mm at keyframe "
