@@ -219,6 +219,10 @@ class BackendConfig:
     keyframe as the first start is; the front end takes the new start's scale. A smoother whose
     scale slips is no similarity of any trajectory the IMU explains: on room-figure8 its
     residual rose from 1-4 mm to 11-37 mm within 1-2 s (BENCHMARKS.md, scalecheck20, reinit21)."""
+    mono_reinit_window_s: float = bounded(3.0, gt=0)
+    """The smoother's keyframe positions of the last this many seconds are fitted for
+    ``mono_reinit_residual_m`` (every ``mono_scale_check_every_s``, once they span 0.8 of it;
+    the scale check keeps its own ``mono_scale_check_window_s``). Good runs: 0.1-2.3 mm over 3 s."""
     mono_reinit_max: int = bounded(3, ge=1)
     """At most this many such re-initialisations per run."""
 

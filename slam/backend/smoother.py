@@ -661,17 +661,23 @@ class VioBackend:
         for s in self._states:
             self._kf_history[s.t_ns] = vals.atPose3(X(s.k)).matrix()
         window_ns = int(cfg.mono_scale_check_window_s * 1e9)
-        self._kf_history = {t: p for t, p in self._kf_history.items() if t >= kf.t_ns - window_ns}
+        reinit_ns = int(cfg.mono_reinit_window_s * 1e9) if cfg.mono_reinit_residual_m > 0 else 0
+        keep_ns = max(window_ns, reinit_ns)
+        self._kf_history = {t: p for t, p in self._kf_history.items() if t >= kf.t_ns - keep_ns}
         if kf.t_ns - self._last_scale_check_ns < int(cfg.mono_scale_check_every_s * 1e9):
             return None
-        times = np.array(sorted(self._kf_history), dtype=np.int64)
+        t, g, a = self.imu.arrays()
+        if cfg.mono_scale_check_with_bias:
+            a = a - vals.atConstantBias(B(self._states[-1].k)).accelerometer()
+        if reinit_ns > 0 and self._check_for_reinit(kf, reinit_ns, t, g, a):
+            return None
+        times = np.array(
+            sorted(tt for tt in self._kf_history if tt >= kf.t_ns - window_ns), dtype=np.int64
+        )
         if len(times) < 6 or (times[-1] - times[0]) < 0.8 * window_ns:
             return None
         self._last_scale_check_ns = kf.t_ns
         poses = np.array([self._kf_history[int(t)] for t in times])
-        t, g, a = self.imu.arrays()
-        if cfg.mono_scale_check_with_bias:
-            a = a - vals.atConstantBias(B(self._states[-1].k)).accelerometer()
         if cfg.mono_scale_check_method == "imu_fit":
             res = check_scale_by_imu_fit(
                 times,
@@ -700,25 +706,6 @@ class VioBackend:
                 cfg.mono_scale_check_max_std,
                 cfg.mono_scale_check_tolerance,
             )
-        residual = res.residual_m if res is not None else float("nan")
-        reinit_at = cfg.mono_reinit_residual_m
-        if reinit_at > 0 and cfg.mono_scale_check_method != "imu_fit":
-            fit = check_scale_by_imu_fit(
-                times,
-                poses,
-                t,
-                g,
-                a,
-                self.imu_calibration,
-                cfg.imu_gap_max_s,
-                vals.atConstantBias(B(self._states[-1].k)).gyroscope(),
-                cfg.mono_scale_check_max_std,
-                cfg.mono_scale_check_tolerance,
-            )
-            residual = fit.residual_m if fit is not None else float("nan")
-        if reinit_at > 0 and residual > reinit_at and self.stats.mono_reinits < cfg.mono_reinit_max:
-            self._reinitialise(kf, residual)
-            return None
         if res is None:
             return None
         self._scale_check_streak = scale_check_streak(self._scale_check_streak, res)
@@ -732,8 +719,8 @@ class VioBackend:
                 "counted": res.counted,
                 "corrected": correct,
             }
-            if np.isfinite(residual):
-                entry["residual_m"] = round(residual, 5)
+            if np.isfinite(res.residual_m):
+                entry["residual_m"] = round(res.residual_m, 5)
             self.stats.mono_scale_checks.append(entry)
         if not correct:
             return None
@@ -757,6 +744,52 @@ class VioBackend:
         self._add_observations_as_tracks(kf, last.k)
         return self._make_estimate()
 
+    def _check_for_reinit(
+        self, kf: Keyframe, window_ns: int, t: np.ndarray, g: np.ndarray, a: np.ndarray
+    ) -> bool:
+        """``mono_reinit_residual_m``: the smoother's keyframe positions of the last
+        ``mono_reinit_window_s`` fitted to the IMU's trajectory
+        (:func:`slam.backend.mono_init.check_scale_by_imu_fit`); a residual above the threshold
+        re-initialises (:meth:`_reinitialise`, at most ``mono_reinit_max`` times). Its own
+        window, shorter than the scale check's: the fit is due once the smoother's states span
+        0.8 of it, so a slip 2-3.5 s after a start is seen within a second or two. Returns
+        whether it re-initialised."""
+        cfg = self.config
+        times = np.array(
+            sorted(tt for tt in self._kf_history if tt >= kf.t_ns - window_ns), dtype=np.int64
+        )
+        if len(times) < 6 or (times[-1] - times[0]) < 0.8 * window_ns:
+            return False
+        self._last_scale_check_ns = kf.t_ns
+        fit = check_scale_by_imu_fit(
+            times,
+            np.array([self._kf_history[int(tt)] for tt in times]),
+            t,
+            g,
+            a,
+            self.imu_calibration,
+            cfg.imu_gap_max_s,
+            self._values.atConstantBias(B(self._states[-1].k)).gyroscope(),
+            cfg.mono_scale_check_max_std,
+            cfg.mono_scale_check_tolerance,
+        )
+        if fit is None or not np.isfinite(fit.residual_m):
+            return False
+        reinit = fit.residual_m > cfg.mono_reinit_residual_m
+        reinit = reinit and self.stats.mono_reinits < cfg.mono_reinit_max
+        if len(self.stats.mono_scale_checks) < 500:
+            self.stats.mono_scale_checks.append(
+                {
+                    "t_ns": kf.t_ns,
+                    "keyframes": len(times),
+                    "residual_m": round(fit.residual_m, 5),
+                    "reinit": reinit,
+                }
+            )
+        if reinit:
+            self._reinitialise(kf, fit.residual_m)
+        return reinit
+
     def _reinitialise(self, kf: Keyframe, residual_m: float) -> None:
         """``mono_reinit_residual_m``: the smoother's recent positions are no similarity of the
         IMU's trajectory (``residual_m`` rms): its scale slipped, and no correction of its own
@@ -772,10 +805,6 @@ class VioBackend:
         log.warning(msg)
         if len(self.stats.failures) < 100:
             self.stats.failures.append(msg)
-        if len(self.stats.mono_scale_checks) < 500:
-            self.stats.mono_scale_checks.append(
-                {"t_ns": kf.t_ns, "residual_m": round(residual_m, 5), "reinit": True}
-            )
         self._initialized = False
         self._reinit = True
         self._smoother = None
