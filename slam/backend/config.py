@@ -211,14 +211,16 @@ class BackendConfig:
     at the newest state with the check's velocity (the scale follows the velocity)."""
 
     mono_reinit_residual_m: float = bounded(0.0, ge=0)
-    """Monocular, with the scale check (``mono_scale_check_window_s``): 0 = off. Else every
-    check also fits the window's smoother positions to the IMU's trajectory
-    (``mono_init.check_scale_by_imu_fit``, whatever ``mono_scale_check_method``), and a fit
-    whose rms residual is above this re-initialises: the smoother is dropped and the monocular
-    start (alignment, window batch) is redone on the keyframes from then on, retried at each
-    keyframe as the first start is; the front end takes the new start's scale. A smoother whose
-    scale slips is no similarity of any trajectory the IMU explains: on room-figure8 its
-    residual rose from 1-4 mm to 11-37 mm within 1-2 s (BENCHMARKS.md, scalecheck20, reinit21)."""
+    """Monocular, with the scale check on (``mono_scale_check_window_s`` > 0): 0 = off. Else
+    the smoother's keyframe positions of the last ``mono_reinit_window_s`` are fitted to the
+    IMU's trajectory (``mono_init.check_scale_by_imu_fit``) as often as the check runs, and a
+    fit whose rms residual is above this re-initialises: the smoother is dropped and the
+    monocular start (alignment, then the window batch) is redone on the keyframes from then on,
+    retried at each keyframe as the first start is; the front end scales its map by the new
+    start's scale. A smoother whose scale slips is no similarity of any trajectory the IMU
+    explains. Off: at 0.01 the delayed room-figure8 grid no longer diverges (loop-closed 4.6-76
+    mm against 19.7-9.1e4) and its guards are byte-identical, but 5 of 9 delayed runs stay
+    over 76 mm live (base 6; BENCHMARKS.md, reinit21)."""
     mono_reinit_window_s: float = bounded(3.0, gt=0)
     """The smoother's keyframe positions of the last this many seconds are fitted for
     ``mono_reinit_residual_m`` (every ``mono_scale_check_every_s``, once they span 0.8 of it;
