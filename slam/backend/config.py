@@ -220,6 +220,24 @@ class BackendConfig:
     """A counted check whose scale is off 1 by more than this fraction restarts the smoother
     at the newest state with the check's velocity (the scale follows the velocity)."""
 
+    mono_reinit_residual_m: float = bounded(0.0, ge=0)
+    """Monocular, with the scale check on (``mono_scale_check_window_s`` > 0): 0 = off. Else
+    the smoother's keyframe positions of the last ``mono_reinit_window_s`` are fitted to the
+    IMU's trajectory (``mono_init.check_scale_by_imu_fit``) as often as the check runs, and a
+    fit whose rms residual is above this re-initialises: the smoother is dropped and the
+    monocular start (alignment, then the window batch) is redone on the keyframes from then on,
+    retried at each keyframe as the first start is; the front end scales its map by the new
+    start's scale. A smoother whose scale slips is no similarity of any trajectory the IMU
+    explains. Off: at 0.01 the delayed room-figure8 grid no longer diverges (loop-closed 4.6-76
+    mm against 19.7-9.1e4) and its guards are byte-identical, but 5 of 9 delayed runs stay
+    over 76 mm live (base 6; BENCHMARKS.md, reinit21)."""
+    mono_reinit_window_s: float = bounded(3.0, gt=0)
+    """The smoother's keyframe positions of the last this many seconds are fitted for
+    ``mono_reinit_residual_m`` (every ``mono_scale_check_every_s``, once they span 0.8 of it;
+    the scale check keeps its own ``mono_scale_check_window_s``). Good runs: 0.1-2.3 mm over 3 s."""
+    mono_reinit_max: int = bounded(3, ge=1)
+    """At most this many such re-initialisations per run."""
+
     # --- smoother -------------------------------------------------------------------------------
     lag_s: float = bounded(1.0, gt=0)
     """Fixed-lag smoother window in seconds (states older than this are marginalised); 1 s is

@@ -68,8 +68,11 @@ class _Estimator(WorkerCore):
             verdict = "accepted" if a["accepted"] else f"rejected: {a['reason']}"
             events.append(f"monocular alignment: scale {a['scale']:.3f} m per VO unit, {verdict}")
         checks = self.backend.stats.mono_scale_checks
-        if checks and checks[-1]["t_ns"] == kf.t_ns and checks[-1]["corrected"]:
+        if checks and checks[-1]["t_ns"] == kf.t_ns and checks[-1].get("corrected"):
             events.append(f"monocular scale check: {checks[-1]['scale']:.3f}, smoother corrected")
+        if checks and checks[-1]["t_ns"] == kf.t_ns and checks[-1].get("reinit"):
+            residual_mm = checks[-1]["residual_m"] * 1e3
+            events.append(f"monocular scale check: residual {residual_mm:.1f} mm, start redone")
         resets = self.backend.stats.resets
         if resets > self.resets_seen:
             events.append(f"back end reset ({resets} so far)")
