@@ -262,3 +262,41 @@ def test_no_rescale_right_after_the_start(scene):
     _next_keyframe(holder, step_s)
     fe.estimate_source()
     assert fe.stats.map_rescales == 1
+
+
+@pytest.mark.parametrize("restarts", [0, 1])
+def test_a_restarted_back_end_scales_the_reframed_map_again(scene, restarts):
+    """Our map (already in the back end's world) 40 % large: a back end that redid its start
+    (``Estimate.restarts`` 1, ``backend.mono_reinit_residual_m``) publishes the new start's
+    scale, metres per unit of our map; we scale the map by it again, once, and take its world
+    as at the first start: our landmarks land on its points. An estimate of the first start
+    (``restarts`` 0) moves a reframed map rigidly only: it stays 40 % large."""
+    fe, pts, holder = _map_and_estimate(scene, 1.4, 0.0, seed=3)
+    fe.cfg = dataclasses.replace(fe.cfg, mono_map_rescale_tolerance=0.0)
+    fe.mapped = True
+    fe.kf_poses[0] = fe.world_from_body.copy()
+    est = holder["estimate"]
+    holder["estimate"] = dataclasses.replace(est, restarts=restarts, vo_scale=1.0 / 1.4)
+    fe._apply_estimate()
+    ours = np.array([fe.landmarks[i] for i in range(len(pts))])
+    theirs = np.asarray(est.landmark_positions_world)
+    if restarts:
+        np.testing.assert_allclose(ours, theirs, atol=1e-9)
+        assert fe.restarts_adopted == 1
+    else:
+        rel = (
+            np.linalg.norm(ours - ours[0], axis=1)[1:]
+            / np.linalg.norm(theirs - theirs[0], axis=1)[1:]
+        )
+        np.testing.assert_allclose(rel, 1.4, rtol=1e-9)
+    # the next estimate of the same start: no second scaling
+    before = ours.copy()
+    _next_keyframe(holder)
+    fe.kf_poses[1] = fe.kf_poses[0]
+    fe._apply_estimate()
+    after = np.array([fe.landmarks[i] for i in range(len(pts))])
+    np.testing.assert_allclose(
+        np.linalg.norm(after - after[0], axis=1),
+        np.linalg.norm(before - before[0], axis=1),
+        rtol=1e-9,
+    )

@@ -26,6 +26,16 @@ class BackendConfig:
     IMU factor (the estimator runs on vision, with a weak VO relative-pose factor)."""
     imu_buffer_s: float = bounded(30.0, gt=0)
     """IMU history kept (seconds before the newest keyframe) for integration and resets."""
+    keyframe_waits_for_imu: bool = False
+    """The back end's stage hands a keyframe to the estimator only once an IMU reading at or
+    after its stamp has arrived (at the latest with the next keyframe, or at the end of the
+    input), as VINS-Mono's estimator waits. Without it a keyframe whose next reading is still
+    on its way (the player hands the readings on with each frame, up to the frame's stamp) has
+    its interval's last piece integrated at the last reading held, not interpolated towards the
+    next: in sequential and real-time runs on the fair V1_01 renders (readings 3 us after the
+    frames) every interval lost half of one reading, and the global adjustment's monocular
+    scale came out 0.2-0.3 % small (``--speed max`` runs, whose back end lags, were spared:
+    BENCHMARKS.md, speedmax21). Off: a keyframe goes on at once."""
 
     imu_gyro_scale_error: float = bounded(0.005, ge=0, le=0.2)
     """Gyro scale / axis error (fraction) the IMU noise model allows for: each keyframe
@@ -209,6 +219,24 @@ class BackendConfig:
     mono_scale_check_tolerance: float = bounded(0.1, gt=0, lt=1)
     """A counted check whose scale is off 1 by more than this fraction restarts the smoother
     at the newest state with the check's velocity (the scale follows the velocity)."""
+
+    mono_reinit_residual_m: float = bounded(0.0, ge=0)
+    """Monocular, with the scale check on (``mono_scale_check_window_s`` > 0): 0 = off. Else
+    the smoother's keyframe positions of the last ``mono_reinit_window_s`` are fitted to the
+    IMU's trajectory (``mono_init.check_scale_by_imu_fit``) as often as the check runs, and a
+    fit whose rms residual is above this re-initialises: the smoother is dropped and the
+    monocular start (alignment, then the window batch) is redone on the keyframes from then on,
+    retried at each keyframe as the first start is; the front end scales its map by the new
+    start's scale. A smoother whose scale slips is no similarity of any trajectory the IMU
+    explains. Off: at 0.01 the delayed room-figure8 grid no longer diverges (loop-closed 4.6-76
+    mm against 19.7-9.1e4) and its guards are byte-identical, but 5 of 9 delayed runs stay
+    over 76 mm live (base 6; BENCHMARKS.md, reinit21)."""
+    mono_reinit_window_s: float = bounded(3.0, gt=0)
+    """The smoother's keyframe positions of the last this many seconds are fitted for
+    ``mono_reinit_residual_m`` (every ``mono_scale_check_every_s``, once they span 0.8 of it;
+    the scale check keeps its own ``mono_scale_check_window_s``). Good runs: 0.1-2.3 mm over 3 s."""
+    mono_reinit_max: int = bounded(3, ge=1)
+    """At most this many such re-initialisations per run."""
 
     # --- smoother -------------------------------------------------------------------------------
     lag_s: float = bounded(1.0, gt=0)

@@ -157,6 +157,9 @@ class BackendStats:
     """Monocular: the scale checks after the start (``mono_scale_check_window_s``): time,
     scale, its standard deviation, whether counted, whether the smoother was corrected."""
     mono_scale_corrections: int = 0
+    mono_reinits: int = 0
+    """Monocular, ``mono_reinit_residual_m``: times the start was redone after a scale check's
+    IMU-fit residual said the smoother slipped."""
     mono_init_batch_scale_change: float = 0.0
     """Monocular, ``mono_init_batch``: the start's batch adjustment moved the alignment's scale
     by this factor (0: no batch ran; 1 +- its failure: the alignment's start was used)."""
@@ -228,6 +231,10 @@ class VioBackend:
         self._last_scale_check_ns = 0
         # consecutive counted scale checks off beyond the tolerance on one side (signed)
         self._scale_check_streak = 0
+        # monocular re-initialisation (``mono_reinit_residual_m``): True while the start is
+        # redone (the front end's map is already in the world; it is scaled again)
+        self._reinit = False
+        self._restarts = 0  # re-initialisations the published estimates carry
         self._smoother: FixedLagSmoother | None = None
         self._values = gtsam.Values()
         self._states: list[_State] = []
@@ -385,6 +392,8 @@ class VioBackend:
             est = self._add_with_recovery(kf, kf_pose_vo)
             if self._monocular and self.config.mono_scale_check_window_s > 0:
                 est = self._check_mono_scale(kf) or est
+                if not self._initialized:  # re-initialising: the start is redone from here
+                    est = self._try_initialise(kf, kf_pose_vo)
         self._segment_id = kf.segment_id
         return est
 
@@ -541,8 +550,10 @@ class VioBackend:
         vel_w = self._world_from_vo[:3, :3] @ res.velocities_vo_m_s[-1]
         bias = make_bias(res.bias_gyro_rad_s, res.bias_accel_m_s2)
         prior = None
+        # a re-initialisation's window is always batch adjusted: the smoother it replaces
+        # slipped within seconds of a start held by the loose ``prior_*`` sigmas
         if cfg.mono_init_batch and (
-            not cfg.mono_init_batch_span_only or len(kfs) < cfg.mono_init_keyframes
+            self._reinit or not cfg.mono_init_batch_span_only or len(kfs) < cfg.mono_init_keyframes
         ):
             batch = self._batch_start(kfs, poses_vo, points, scale, res.velocities_vo_m_s, bias)
             if batch is not None:
@@ -553,6 +564,10 @@ class VioBackend:
                 prior = batch.prior
                 newest = scale_body_pose(poses_vo[-1], scale, body_from_cam0)
                 self._world_from_vo = pose_w @ invert_transform(newest)
+        if self._reinit:
+            # the front end's map is already in the world: it scales it by this again
+            self._reinit = False
+            self._restarts += 1
         self._vo_scale = scale
         self.stats.vo_scale = scale
         self.stats.init_state = "initialised"
@@ -646,17 +661,23 @@ class VioBackend:
         for s in self._states:
             self._kf_history[s.t_ns] = vals.atPose3(X(s.k)).matrix()
         window_ns = int(cfg.mono_scale_check_window_s * 1e9)
-        self._kf_history = {t: p for t, p in self._kf_history.items() if t >= kf.t_ns - window_ns}
+        reinit_ns = int(cfg.mono_reinit_window_s * 1e9) if cfg.mono_reinit_residual_m > 0 else 0
+        keep_ns = max(window_ns, reinit_ns)
+        self._kf_history = {t: p for t, p in self._kf_history.items() if t >= kf.t_ns - keep_ns}
         if kf.t_ns - self._last_scale_check_ns < int(cfg.mono_scale_check_every_s * 1e9):
             return None
-        times = np.array(sorted(self._kf_history), dtype=np.int64)
+        t, g, a = self.imu.arrays()
+        if cfg.mono_scale_check_with_bias:
+            a = a - vals.atConstantBias(B(self._states[-1].k)).accelerometer()
+        if reinit_ns > 0 and self._check_for_reinit(kf, reinit_ns, t, g, a):
+            return None
+        times = np.array(
+            sorted(tt for tt in self._kf_history if tt >= kf.t_ns - window_ns), dtype=np.int64
+        )
         if len(times) < 6 or (times[-1] - times[0]) < 0.8 * window_ns:
             return None
         self._last_scale_check_ns = kf.t_ns
         poses = np.array([self._kf_history[int(t)] for t in times])
-        t, g, a = self.imu.arrays()
-        if cfg.mono_scale_check_with_bias:
-            a = a - vals.atConstantBias(B(self._states[-1].k)).accelerometer()
         if cfg.mono_scale_check_method == "imu_fit":
             res = check_scale_by_imu_fit(
                 times,
@@ -723,6 +744,81 @@ class VioBackend:
         self._add_observations_as_tracks(kf, last.k)
         return self._make_estimate()
 
+    def _check_for_reinit(
+        self, kf: Keyframe, window_ns: int, t: np.ndarray, g: np.ndarray, a: np.ndarray
+    ) -> bool:
+        """``mono_reinit_residual_m``: the smoother's keyframe positions of the last
+        ``mono_reinit_window_s`` fitted to the IMU's trajectory
+        (:func:`slam.backend.mono_init.check_scale_by_imu_fit`); a residual above the threshold
+        re-initialises (:meth:`_reinitialise`, at most ``mono_reinit_max`` times). Its own
+        window, shorter than the scale check's: the fit is due once the smoother's states span
+        0.8 of it, so a slip 2-3.5 s after a start is seen within a second or two. Returns
+        whether it re-initialised."""
+        cfg = self.config
+        times = np.array(
+            sorted(tt for tt in self._kf_history if tt >= kf.t_ns - window_ns), dtype=np.int64
+        )
+        if len(times) < 6 or (times[-1] - times[0]) < 0.8 * window_ns:
+            return False
+        self._last_scale_check_ns = kf.t_ns
+        fit = check_scale_by_imu_fit(
+            times,
+            np.array([self._kf_history[int(tt)] for tt in times]),
+            t,
+            g,
+            a,
+            self.imu_calibration,
+            cfg.imu_gap_max_s,
+            self._values.atConstantBias(B(self._states[-1].k)).gyroscope(),
+            cfg.mono_scale_check_max_std,
+            cfg.mono_scale_check_tolerance,
+        )
+        if fit is None or not np.isfinite(fit.residual_m):
+            return False
+        reinit = fit.residual_m > cfg.mono_reinit_residual_m
+        reinit = reinit and self.stats.mono_reinits < cfg.mono_reinit_max
+        if len(self.stats.mono_scale_checks) < 500:
+            self.stats.mono_scale_checks.append(
+                {
+                    "t_ns": kf.t_ns,
+                    "keyframes": len(times),
+                    "residual_m": round(fit.residual_m, 5),
+                    "reinit": reinit,
+                }
+            )
+        if reinit:
+            self._reinitialise(kf, fit.residual_m)
+        return reinit
+
+    def _reinitialise(self, kf: Keyframe, residual_m: float) -> None:
+        """``mono_reinit_residual_m``: the smoother's recent positions are no similarity of the
+        IMU's trajectory (``residual_m`` rms): its scale slipped, and no correction of its own
+        states can say by how much (BENCHMARKS.md, scalecheck20). It is dropped and the monocular
+        start's retry path takes over from this keyframe on (:meth:`_try_mono_initialise`, on
+        the front end's keyframes from here, its window always batch adjusted); until a start
+        is accepted the estimates are uninitialised, which the front end does not apply."""
+        self.stats.mono_reinits += 1
+        msg = (
+            f"monocular scale check: IMU-fit residual {residual_m * 1e3:.1f} mm at keyframe "
+            f"{kf.keyframe_id}, the start is redone"
+        )
+        log.warning(msg)
+        if len(self.stats.failures) < 100:
+            self.stats.failures.append(msg)
+        self._initialized = False
+        self._reinit = True
+        self._smoother = None
+        self._states = []
+        self._landmarks = set()
+        self._tracks = {}
+        self._smart = {}
+        self._map_alive = set()
+        self._positions = {}  # the slipped smoother's landmarks: no map for the new start
+        self._kf_history = {}
+        self._scale_check_streak = 0
+        self._init_keyframes = []
+        self._last_good = None
+
     def _moving_init(self, kfs: list[Keyframe]) -> MovingInitResult | None:
         t, g, a = self.imu.arrays()
         res = moving_init(
@@ -753,7 +849,8 @@ class VioBackend:
     ) -> Estimate:
         self._initialized = True
         self.stats.init_method = method
-        self.stats.init_t_ns = kf.t_ns
+        if self.stats.init_t_ns < 0:  # the first start's (a re-initialisation keeps it)
+            self.stats.init_t_ns = kf.t_ns
         self._t_origin_ns = kf.t_ns
         self._init_keyframes = []
         log.info("back end initialised (%s start) at keyframe %d", method, kf.keyframe_id)
@@ -1399,6 +1496,7 @@ class VioBackend:
             landmark_ids=lids,
             landmark_positions_world=pts,
             vo_scale=self._vo_scale,
+            restarts=self._restarts,
             imu_intrinsics=None
             if self.intrinsics is None or self.intrinsics.applied.is_identity
             else self.intrinsics.applied,

@@ -149,6 +149,10 @@ class Estimate:
     """Monocular: metres per unit of the front end's VO frame, found at initialisation. The
     front end scales its map by it (camera centres and landmarks about the VO origin,
     ``slam.core.geometry.scale_body_pose``) before it adopts the back end's world."""
+    restarts: int = 0
+    """Monocular: how many times the start was redone (``backend.mono_reinit_residual_m``).
+    An estimate with a new count carries that start's ``vo_scale``, metres per unit of the front
+    end's (already reframed) map: the front end scales its map by it again."""
     time_offset: TimeOffsetState | None = None  # the online camera-IMU offset (None: not run)
     imu_intrinsics: ImuIntrinsics | None = None
     """The IMU correction matrices applied in the back end (None: none estimated yet or the

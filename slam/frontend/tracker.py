@@ -136,6 +136,7 @@ class FrontEnd:
         """Corrections applied since the owner last took them (:meth:`take_corrections`)."""
         self.relocaliser = relocaliser  # slam.loop.relocaliser.Relocaliser, or None
         self.reframed = False
+        self.restarts_adopted = 0  # the back end's monocular restarts whose scale we took
         self.cam0 = calib.cameras[0].intrinsics
         self.K = self.cam0.K
         self.body_from_cam0 = calib.cameras[0].body_from_cam
@@ -221,14 +222,18 @@ class FrontEnd:
             return
         if not self._rigid_estimate(est, fe_pose):
             return
-        if not self.reframed:
+        # a monocular back end that redid its start (``Estimate.restarts``) has a new scale for
+        # our map, already in its world: scaled again, and moved to its estimate as below
+        restarted = self.reframed and est.restarts != self.restarts_adopted
+        if not self.reframed or restarted:
             fe_pose = self._adopt_scale(est, fe_pose)
+            self.restarts_adopted = est.restarts
         correction = nearest_rigid(est.world_from_body @ invert_transform(fe_pose))
         self.stats.estimate_corrections += 1
         # The first initialised estimate moves us from the VO frame (the first body pose)
         # into the back end's gravity-aligned world: a change of frame, not a correction, so
         # everything already output must move with it (``reframe``).
-        if not self.reframed:
+        if not self.reframed or restarted:
             self.landmark_map.transform(correction)
         self.corrections.append(FrontendCorrection(est.t_ns, correction, not self.reframed))
         self.reframed = True

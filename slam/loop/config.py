@@ -268,7 +268,7 @@ class LoopClosureConfig:
     instead (keyframes, offline: room-figure8 s1 1.52 -> 10.86 mm, room-loop s2 0.41 -> 0.77;
     BENCHMARKS.md, v101mono18). The prior on the back end's accelerometer bias estimates is
     loosened by the same factor. Off (1) by default; ``euroc-mono-imu`` sets 10 (the gyro's
-    stays 1) behind ``global_ba_imu_walk_gate`` 1.5, which passes V1_01's IMU and none of the
+    stays 1) behind ``global_ba_imu_walk_gate`` (1.25), which passes V1_01's IMU and none of the
     suite's (BENCHMARKS.md, v101loop19), now 1000 with ``global_ba_imu_accel_bias_smoothing``
     (BENCHMARKS.md, v101walk20)."""
     global_ba_imu_gyro_walk_factor: float = bounded(1.0, gt=0)
@@ -279,8 +279,9 @@ class LoopClosureConfig:
     random walk allows (``GlobalBaParams.imu_walk_gate``, ``slam.loop.global_ba.bias_wander``:
     the median over keyframes of the squared change over 10 s against the walk's variance;
     stats.json ``loop_closure.global_ba.imu_*_bias_wander`` and ``imu_*_walk_factor``); 0: they
-    always apply. ``euroc-mono-imu``: 1.5 (the fair V1_01 renders' accelerometer / gyro
-    wander 1.8-2.3 / 2.2-3.5, the suite's at most 1.05; BENCHMARKS.md, v101loop19)."""
+    always apply. ``euroc-mono-imu``: 1.25 (the fair V1_01 renders' accelerometer wander
+    1.51-1.69 since ``backend.keyframe_waits_for_imu``, 1.8-2.3 before; the suite's at most
+    1.05; BENCHMARKS.md, v101loop19 and speedmax21)."""
     global_ba_imu_accel_bias_smoothing: float = bounded(0.0, ge=0)
     """With it above 0, where ``global_ba_imu_accel_walk_factor`` applies (behind the gate):
     the accelerometer bias is also held by a second-order random walk of this density (m/s^2

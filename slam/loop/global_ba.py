@@ -410,14 +410,18 @@ def global_bundle_adjustment(
             accel_factor = 1.0
         if wander is None or wander[1] < p.imu_walk_gate:
             gyro_factor = 1.0
-    imu_calibrated = imu
     between = p.imu_accel_bias_smoothing > 0 and accel_factor != 1.0
+    # ``imu`` stays as calibrated; ``imu_walked`` has the walk factors applied. The bias walk
+    # goes into the IMU factors themselves, or, with ``between``, into separate bias factors
+    # (and then the IMU factors keep the calibrated walk).
+    imu_walked = imu
     if imu is not None and (accel_factor != 1.0 or gyro_factor != 1.0):
-        imu = dataclasses.replace(
+        imu_walked = dataclasses.replace(
             imu,
             accel_random_walk=imu.accel_random_walk * accel_factor,
             gyro_random_walk=imu.gyro_random_walk * gyro_factor,
         )
+    imu_of_factors = imu if between else imu_walked
     kf_ids = sorted(k for k in world_from_body if k in observations)
     cams = calib.cameras[:2]
     body_from_cam = [np.asarray(c.body_from_cam, dtype=float) for c in cams]
@@ -562,8 +566,8 @@ def global_bundle_adjustment(
             values.insert(_bias_key(k), bias)
             graph.add(gtsam.PriorFactorConstantBias(_bias_key(k), bias, bias_prior))
         if between:
-            _add_bias_walks(graph, values, links, inertial, imu, p.imu_accel_bias_smoothing)
-            imu = imu_calibrated  # the readings' noise (and the refit's bias model) as calibrated
+            assert imu_walked is not None
+            _add_bias_walks(graph, values, links, inertial, imu_walked, p.imu_accel_bias_smoothing)
     cal = [
         gtsam.Cal3_S2(c.intrinsics.fx, c.intrinsics.fy, 0.0, c.intrinsics.cx, c.intrinsics.cy)
         for c in cams
@@ -651,10 +655,14 @@ def global_bundle_adjustment(
     fitted: ImuIntrinsics | None = None
     scale_std = (0.0, 0.0)
     if links:
-        assert inertial is not None and imu is not None
+        assert inertial is not None and imu_of_factors is not None
         imu_first = int(full.size())
         for a, b in links:
-            full.add(_imu_factor(a, b, inertial, values, imu, p.imu_scale_error, None, p, between))
+            full.add(
+                _imu_factor(
+                    a, b, inertial, values, imu_of_factors, p.imu_scale_error, None, p, between
+                )
+            )
         factor_imu = imu_first + np.arange(len(links))
     for round_ in range(max(p.rounds, 1)):  # solve; drop outliers; solve again (and again)
         if deadline is not None and iteration_s is not None:
@@ -682,8 +690,8 @@ def global_bundle_adjustment(
         )
         refit = None
         if round_ == 0 and p.rounds > 1 and links and p.imu_refit and not time_boxed:
-            assert inertial is not None and imu is not None
-            found = _fit_imu_intrinsics(kf_ids, links, inertial, result, imu, p)
+            assert inertial is not None and imu_of_factors is not None
+            found = _fit_imu_intrinsics(kf_ids, links, inertial, result, imu_of_factors, p)
             if found is not None:
                 refit, scale_std = found
         if time_boxed or (not len(dropped) and reweigh is None and refit is None):
@@ -691,7 +699,7 @@ def global_bundle_adjustment(
         for i in dropped.tolist():
             full.remove(i)
         if refit is not None:
-            assert inertial is not None and imu is not None
+            assert inertial is not None and imu_of_factors is not None
             fitted = refit
             certain = max(scale_std) < p.imu_refit_max_std
             refit_error = p.imu_refit_scale_error if certain else p.imu_scale_error
@@ -699,7 +707,11 @@ def global_bundle_adjustment(
                 full.remove(i)
             imu_first = int(full.size())
             for a, b in links:
-                full.add(_imu_factor(a, b, inertial, result, imu, refit_error, refit, p, between))
+                full.add(
+                    _imu_factor(
+                        a, b, inertial, result, imu_of_factors, refit_error, refit, p, between
+                    )
+                )
             factor_imu = imu_first + np.arange(len(links))
         if reweigh is not None:
             # The kept observations of keyframes noisier than the round's: their factors again,

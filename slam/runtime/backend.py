@@ -68,8 +68,11 @@ class _Estimator(WorkerCore):
             verdict = "accepted" if a["accepted"] else f"rejected: {a['reason']}"
             events.append(f"monocular alignment: scale {a['scale']:.3f} m per VO unit, {verdict}")
         checks = self.backend.stats.mono_scale_checks
-        if checks and checks[-1]["t_ns"] == kf.t_ns and checks[-1]["corrected"]:
+        if checks and checks[-1]["t_ns"] == kf.t_ns and checks[-1].get("corrected"):
             events.append(f"monocular scale check: {checks[-1]['scale']:.3f}, smoother corrected")
+        if checks and checks[-1]["t_ns"] == kf.t_ns and checks[-1].get("reinit"):
+            residual_mm = checks[-1]["residual_m"] * 1e3
+            events.append(f"monocular scale check: residual {residual_mm:.1f} mm, start redone")
         resets = self.backend.stats.resets
         if resets > self.resets_seen:
             events.append(f"back end reset ({resets} so far)")
@@ -167,6 +170,11 @@ class BackendStage(ProcessStage):
             raise ValueError("a delayed estimate is for sequential runs only")
         self.estimate_delay_ns = estimate_delay_ns
         self._held: deque[Estimate] = deque()  # estimates not yet due (estimate_delay_ns)
+        self.keyframe_waits_for_imu = cfg.keyframe_waits_for_imu
+        self._waiting: Keyframe | None = None  # waiting for the IMU reading after its stamp
+        self._imu_newest_ns: int | None = None  # the newest IMU reading handed on
+        self.keyframes_waited_for_imu = 0
+        self.keyframes_not_covered_by_imu = 0
 
     def on_output(self, item: Any) -> None:
         if not isinstance(item, BackendOutput):
@@ -229,19 +237,46 @@ class BackendStage(ProcessStage):
                     self._flush_imu()
             else:
                 self.send(msg)
+            if len(msg):
+                self._imu_newest_ns = int(msg.t_ns[-1])
+            if self._waiting is not None and self._covered(self._waiting):
+                self._send_keyframe(self._waiting)
+                self._waiting = None
             if self._held and len(msg):
                 self._release_held(int(msg.t_ns[-1]))
         elif isinstance(msg, Keyframe):
-            if self.use_process:
-                self._flush_imu()
-                # The estimator uses the observations only: not pickling and piping the two
-                # images (~720 KB, written in 64 KB pieces that each take the GIL again) keeps
-                # that work off the front end's GIL.
-                self.send(dataclasses.replace(msg, image_left=_NO_IMAGE, image_right=None))
+            if not self.keyframe_waits_for_imu:
+                self._send_keyframe(msg)
+                return
+            if self._waiting is not None:  # a keyframe waits at most until the next one
+                self.keyframes_not_covered_by_imu += 1
+                self._send_keyframe(self._waiting)
+                self._waiting = None
+            if self._covered(msg):
+                self._send_keyframe(msg)
             else:
-                self.send(msg)
+                self.keyframes_waited_for_imu += 1
+                self._waiting = msg
+
+    def _covered(self, kf: Keyframe) -> bool:
+        """Whether an IMU reading at or after the keyframe's stamp has been handed on."""
+        return self._imu_newest_ns is not None and self._imu_newest_ns >= kf.t_ns
+
+    def _send_keyframe(self, kf: Keyframe) -> None:
+        if self.use_process:
+            self._flush_imu()
+            # The estimator uses the observations only: not pickling and piping the two
+            # images (~720 KB, written in 64 KB pieces that each take the GIL again) keeps
+            # that work off the front end's GIL.
+            self.send(dataclasses.replace(kf, image_left=_NO_IMAGE, image_right=None))
+        else:
+            self.send(kf)
 
     def on_end(self) -> None:
+        if self._waiting is not None and not self.interrupted:  # no reading came after it
+            self.keyframes_not_covered_by_imu += 1
+            self._send_keyframe(self._waiting)
+        self._waiting = None
         if self.use_process and not self.interrupted:
             self._flush_imu()
         self.send(BackendFlush())  # keyframes held for the time offset

@@ -182,6 +182,8 @@ class Run:
                 "mode": "process" if p.backend.use_process else "in-process",
                 "update": p.backend.update_stats(),
                 "initialised_after_s": p.recorder.initialised_after_s,
+                "keyframes_waited_for_imu": p.backend.keyframes_waited_for_imu,
+                "keyframes_not_covered_by_imu": p.backend.keyframes_not_covered_by_imu,
                 **p.backend.final_stats,
             },
             "events": [
