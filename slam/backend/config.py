@@ -228,9 +228,10 @@ class BackendConfig:
     monocular start (alignment, then the window batch) is redone on the keyframes from then on,
     retried at each keyframe as the first start is; the front end scales its map by the new
     start's scale. A smoother whose scale slips is no similarity of any trajectory the IMU
-    explains. Off: at 0.01 the delayed room-figure8 grid no longer diverges (loop-closed 4.6-76
-    mm against 19.7-9.1e4) and its guards are byte-identical, but 5 of 9 delayed runs stay
-    over 76 mm live (base 6; BENCHMARKS.md, reinit21)."""
+    explains. Off by default; ``euroc-mono-imu``: 0.01, where the delayed room-figure8 grid no
+    longer diverges (loop-closed 4.6-76 mm against 19.7-9.1e4), though 5 of 9 delayed runs stay
+    over 76 mm live (base 6), and every undelayed run measured is byte-identical (BENCHMARKS.md,
+    reinit21 and the nineteenth session)."""
     mono_reinit_window_s: float = bounded(3.0, gt=0)
     """The smoother's keyframe positions of the last this many seconds are fitted for
     ``mono_reinit_residual_m`` (every ``mono_scale_check_every_s``, once they span 0.8 of it;
