@@ -55,6 +55,7 @@ from slam.backend.init import (
     world_from_vo_gravity,
 )
 from slam.backend.mono_init import (
+    ScaleCheck,
     align_mono,
     batch_start,
     check_scale,
@@ -671,26 +672,13 @@ class VioBackend:
             a = a - vals.atConstantBias(B(self._states[-1].k)).accelerometer()
         if reinit_ns > 0 and self._check_for_reinit(kf, reinit_ns, t, g, a):
             return None
-        times = np.array(
-            sorted(tt for tt in self._kf_history if tt >= kf.t_ns - window_ns), dtype=np.int64
-        )
-        if len(times) < 6 or (times[-1] - times[0]) < 0.8 * window_ns:
+        window = self._history_window(kf.t_ns, window_ns)
+        if window is None:
             return None
         self._last_scale_check_ns = kf.t_ns
-        poses = np.array([self._kf_history[int(t)] for t in times])
+        times, poses = window
         if cfg.mono_scale_check_method == "imu_fit":
-            res = check_scale_by_imu_fit(
-                times,
-                poses,
-                t,
-                g,
-                a,
-                self.imu_calibration,
-                cfg.imu_gap_max_s,
-                vals.atConstantBias(B(self._states[-1].k)).gyroscope(),
-                cfg.mono_scale_check_max_std,
-                cfg.mono_scale_check_tolerance,
-            )
+            res = self._imu_fit(times, poses, t, g, a)
         else:
             res = check_scale(
                 times,
@@ -744,6 +732,33 @@ class VioBackend:
         self._add_observations_as_tracks(kf, last.k)
         return self._make_estimate()
 
+    def _history_window(self, t_ns: int, window_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """The smoother's keyframe times and poses (``_kf_history``) of the last ``window_ns``
+        before ``t_ns``; None until at least 6 of them span 0.8 of it."""
+        times = np.array(sorted(tt for tt in self._kf_history if tt >= t_ns - window_ns), np.int64)
+        if len(times) < 6 or (times[-1] - times[0]) < 0.8 * window_ns:
+            return None
+        return times, np.array([self._kf_history[int(tt)] for tt in times])
+
+    def _imu_fit(
+        self, times: np.ndarray, poses: np.ndarray, t: np.ndarray, g: np.ndarray, a: np.ndarray
+    ) -> ScaleCheck | None:
+        """:func:`slam.backend.mono_init.check_scale_by_imu_fit` of these keyframe poses, with
+        the smoother's newest gyro bias and the scale check's limits."""
+        cfg = self.config
+        return check_scale_by_imu_fit(
+            times,
+            poses,
+            t,
+            g,
+            a,
+            self.imu_calibration,
+            cfg.imu_gap_max_s,
+            self._values.atConstantBias(B(self._states[-1].k)).gyroscope(),
+            cfg.mono_scale_check_max_std,
+            cfg.mono_scale_check_tolerance,
+        )
+
     def _check_for_reinit(
         self, kf: Keyframe, window_ns: int, t: np.ndarray, g: np.ndarray, a: np.ndarray
     ) -> bool:
@@ -755,24 +770,12 @@ class VioBackend:
         0.8 of it, so a slip 2-3.5 s after a start is seen within a second or two. Returns
         whether it re-initialised."""
         cfg = self.config
-        times = np.array(
-            sorted(tt for tt in self._kf_history if tt >= kf.t_ns - window_ns), dtype=np.int64
-        )
-        if len(times) < 6 or (times[-1] - times[0]) < 0.8 * window_ns:
+        window = self._history_window(kf.t_ns, window_ns)
+        if window is None:
             return False
         self._last_scale_check_ns = kf.t_ns
-        fit = check_scale_by_imu_fit(
-            times,
-            np.array([self._kf_history[int(tt)] for tt in times]),
-            t,
-            g,
-            a,
-            self.imu_calibration,
-            cfg.imu_gap_max_s,
-            self._values.atConstantBias(B(self._states[-1].k)).gyroscope(),
-            cfg.mono_scale_check_max_std,
-            cfg.mono_scale_check_tolerance,
-        )
+        times, poses = window
+        fit = self._imu_fit(times, poses, t, g, a)
         if fit is None or not np.isfinite(fit.residual_m):
             return False
         reinit = fit.residual_m > cfg.mono_reinit_residual_m
